@@ -1,0 +1,34 @@
+# Two entry points (see README): `make run` (main job) and `make test`.
+# Both create .venv on first use and install torch==2.13.0 (CPU wheel) BEFORE the package,
+# so that no dependency pulls a CUDA build of torch.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed-stamp
+# One torch thread and a passive OpenMP wait policy: torch's busy-waiting pool is 10x slower on a loaded 2-core box.
+export OMP_NUM_THREADS ?= 1
+export OMP_WAIT_POLICY ?= PASSIVE
+export MKL_NUM_THREADS ?= 1
+
+.PHONY: setup run test bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet torch==2.13.0
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+run: $(STAMP)
+	$(BIN)/python experiments/lasa_metrics.py
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q -n 2 tests
+
+bench: $(STAMP)
+	$(BIN)/python experiments/bench_core.py
+
+clean:
+	rm -rf $(VENV) outputs multirun .pytest_cache
