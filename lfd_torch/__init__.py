@@ -1,0 +1,15 @@
+"""lfd_torch: robust robot learning from demonstration in PyTorch.
+
+Reproduces Wang, Zeng et al., "A Novel Robust Imitation Learning Framework for Complex Skills With Limited
+Demonstrations" (IEEE T-ASE 2024): preprocessing, BP-GM-HMM segmentation, stable LPV-DS/SEDS primitives,
+a behavior-tree skill engine with disturbance modulation, metrics and experiments.
+"""
+
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("lfd_torch")
+except PackageNotFoundError:  # running from a source tree that is not installed
+    __version__ = "0.0.0+unknown"
+
+__all__ = ["__version__", "data", "errors", "metrics", "preprocess", "rollout", "store", "viz"]

@@ -1,0 +1,372 @@
+"""Ragged sets of demonstrations as padded tensors.
+
+Notation:
+    B  number of demonstrations
+    T  padded number of samples (max over the set)
+    d  state dimension
+    positions  (B, T, d)   x, in data units (LASA: mm); padding repeats the last valid sample
+    velocities (B, T, d)   x_dot, in data units per second; zero on padding
+    times      (B, T)      seconds, strictly increasing over the valid part; padding repeats the last time
+    lengths    (B,)        valid samples per demonstration (int64, >= 3)
+    attractor  (d,)        the common goal g of the set
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from lfd_torch.data.finite_difference import finite_difference
+from lfd_torch.errors import (
+    NonFiniteError,
+    NonIncreasingTimeError,
+    ShapeMismatchError,
+    TooFewSamplesError,
+)
+
+__all__ = ["Demos", "MIN_SAMPLES"]
+
+MIN_SAMPLES = 3
+
+Index = int | slice | Sequence[int] | Tensor | np.ndarray
+
+
+def _as_tensor(value: Any, dtype: torch.dtype | None, device: torch.device | str | None) -> Tensor:
+    if isinstance(value, Tensor):
+        return value.to(dtype=dtype or value.dtype, device=device or value.device)
+    return torch.tensor(np.asarray(value), dtype=dtype, device=device)
+
+
+def _pad_edge(rows: list[Tensor], T: int) -> Tensor:
+    """Stack (T_i, ...) tensors into (B, T, ...), repeating each row's last entry."""
+    out = []
+    for r in rows:
+        if r.shape[0] < T:
+            r = torch.cat([r, r[-1:].expand(T - r.shape[0], *r.shape[1:])], dim=0)
+        out.append(r)
+    return torch.stack(out)
+
+
+@dataclass(frozen=True, eq=False)
+class Demos:
+    """A validated, padded batch of demonstrations (see the module docstring for shapes and units).
+
+    Build one with :meth:`from_sequences` from a list of ragged arrays, or directly from padded tensors.
+    Instances are immutable; every transformation returns a new ``Demos``.
+    """
+
+    positions: Tensor
+    velocities: Tensor
+    times: Tensor
+    lengths: Tensor
+    attractor: Tensor
+    names: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "names", tuple(self.names))
+        object.__setattr__(self, "lengths", self.lengths.to(dtype=torch.long, device=self.positions.device))
+        self._validate()
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_sequences(
+        cls,
+        positions: Sequence[Any],
+        *,
+        times: Sequence[Any] | None = None,
+        dt: float | None = None,
+        velocities: Sequence[Any] | None = None,
+        attractor: Any | None = None,
+        names: Sequence[str] | None = None,
+        velocity_scheme: str = "central",
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str | None = None,
+    ) -> Demos:
+        """Build from ragged sequences.
+
+        Args:
+            positions: B array-likes of shape (T_i, d).
+            times: B array-likes of shape (T_i,), seconds; or None with ``dt`` for uniform sampling.
+            dt: uniform time step in seconds when ``times`` is None (default 1.0).
+            velocities: B array-likes (T_i, d); None estimates them by finite differences (``velocity_scheme``).
+            attractor: (d,) goal; None takes the mean of the demonstrations' end points.
+            names: optional B labels.
+        """
+        if len(positions) == 0:
+            raise TooFewSamplesError("a demonstration set needs at least one demonstration")
+        pos = []
+        for i, p in enumerate(positions):
+            t = _as_tensor(p, dtype, device)
+            if t.ndim != 2:
+                raise ShapeMismatchError(f"positions must have shape (T, d), got {tuple(t.shape)}", i)
+            pos.append(t)
+        dims = {p.shape[1] for p in pos}
+        if len(dims) != 1:
+            raise ShapeMismatchError(f"state dimensions differ across demonstrations: {[p.shape[1] for p in pos]}")
+        for i, p in enumerate(pos):
+            if p.shape[0] < MIN_SAMPLES:
+                raise TooFewSamplesError(f"has {p.shape[0]} samples, at least {MIN_SAMPLES} are needed", i)
+        lengths = torch.tensor([p.shape[0] for p in pos], dtype=torch.long, device=pos[0].device)
+        T = int(lengths.max())
+        if times is None:
+            step = 1.0 if dt is None else float(dt)
+            if not step > 0:
+                raise NonIncreasingTimeError(f"dt must be positive, got {dt}")
+            tms = [torch.arange(p.shape[0], dtype=dtype, device=p.device) * step for p in pos]
+        else:
+            if len(times) != len(pos):
+                raise ShapeMismatchError(f"{len(times)} time vectors for {len(pos)} demonstrations")
+            tms = []
+            for i, (t, p) in enumerate(zip(times, pos)):
+                tt = _as_tensor(t, dtype, p.device).reshape(-1)
+                if tt.shape[0] != p.shape[0]:
+                    raise ShapeMismatchError(f"{tt.shape[0]} time stamps for {p.shape[0]} samples", i)
+                tms.append(tt)
+        P = _pad_edge(pos, T)
+        Tm = _pad_edge(tms, T)
+        if velocities is None:
+            cls._check_values(P, Tm, lengths)  # clear errors before differentiating
+            V = finite_difference(P, Tm, lengths, scheme=velocity_scheme)
+        else:
+            if len(velocities) != len(pos):
+                raise ShapeMismatchError(f"{len(velocities)} velocity arrays for {len(pos)} demonstrations")
+            vel = []
+            for i, (v, p) in enumerate(zip(velocities, pos)):
+                vv = _as_tensor(v, dtype, p.device)
+                if vv.shape != p.shape:
+                    raise ShapeMismatchError(
+                        f"velocities have shape {tuple(vv.shape)}, positions {tuple(p.shape)}", i
+                    )
+                vel.append(torch.cat([vv, vv.new_zeros(T - vv.shape[0], vv.shape[1])]))
+            V = torch.stack(vel)
+        if attractor is None:
+            g = P[torch.arange(len(pos), device=P.device), lengths - 1].mean(0)
+        else:
+            g = _as_tensor(attractor, dtype, P.device).reshape(-1)
+        return cls(P, V, Tm, lengths, g, tuple(names) if names is not None else ())
+
+    # ------------------------------------------------------------------ validation
+    @staticmethod
+    def _check_values(positions: Tensor, times: Tensor, lengths: Tensor, velocities: Tensor | None = None) -> None:
+        B, T = times.shape
+        mask = torch.arange(T, device=times.device).unsqueeze(0) < lengths.unsqueeze(1)
+        if (lengths < MIN_SAMPLES).any():
+            i = int(torch.nonzero(lengths < MIN_SAMPLES)[0])
+            raise TooFewSamplesError(f"has {int(lengths[i])} samples, at least {MIN_SAMPLES} are needed", i)
+        if (lengths > T).any():
+            i = int(torch.nonzero(lengths > T)[0])
+            raise ShapeMismatchError(f"length {int(lengths[i])} exceeds the padded length {T}", i)
+        for name, value in (("positions", positions), ("velocities", velocities)):
+            if value is None:
+                continue
+            bad = (~torch.isfinite(value)).any(-1) & mask
+            if bad.any():
+                i, t = (int(v) for v in torch.nonzero(bad)[0])
+                what = "NaN" if torch.isnan(value[i, t]).any() else "Inf"
+                raise NonFiniteError(f"{name} contain {what} at sample {t}", i)
+        bad_t = (~torch.isfinite(times)) & mask
+        if bad_t.any():
+            i, t = (int(v) for v in torch.nonzero(bad_t)[0])
+            raise NonFiniteError(f"times contain a non-finite value at sample {t}", i)
+        step_mask = mask[:, 1:]
+        bad_step = (times[:, 1:] <= times[:, :-1]) & step_mask
+        if bad_step.any():
+            i, t = (int(v) for v in torch.nonzero(bad_step)[0])
+            raise NonIncreasingTimeError(
+                f"time is not strictly increasing at sample {t + 1} "
+                f"({float(times[i, t])} -> {float(times[i, t + 1])})",
+                i,
+            )
+
+    def _validate(self) -> None:
+        P, V, Tm, L, g = self.positions, self.velocities, self.times, self.lengths, self.attractor
+        if P.ndim != 3:
+            raise ShapeMismatchError(f"positions must be (B, T, d), got {tuple(P.shape)}")
+        B, T, d = P.shape
+        if B == 0:
+            raise TooFewSamplesError("a demonstration set needs at least one demonstration")
+        if V.shape != P.shape:
+            raise ShapeMismatchError(f"velocities {tuple(V.shape)} do not match positions {tuple(P.shape)}")
+        if Tm.shape != (B, T):
+            raise ShapeMismatchError(f"times must be (B, T) = {(B, T)}, got {tuple(Tm.shape)}")
+        if L.shape != (B,):
+            raise ShapeMismatchError(f"lengths must be (B,) = ({B},), got {tuple(L.shape)}")
+        if g.shape != (d,):
+            raise ShapeMismatchError(f"attractor must have shape ({d},), got {tuple(g.shape)}")
+        if not torch.isfinite(g).all():
+            raise NonFiniteError("attractor is not finite")
+        if self.names and len(self.names) != B:
+            raise ShapeMismatchError(f"{len(self.names)} names for {B} demonstrations")
+        for name, t in (("velocities", V), ("times", Tm), ("attractor", g)):
+            if t.device != P.device:
+                raise ShapeMismatchError(f"{name} on {t.device}, positions on {P.device}")
+            if t.dtype != P.dtype:
+                raise ShapeMismatchError(f"{name} has dtype {t.dtype}, positions {P.dtype}")
+        self._check_values(P, Tm, L, V)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def n_demos(self) -> int:
+        return self.positions.shape[0]
+
+    def __len__(self) -> int:
+        return self.n_demos
+
+    @property
+    def dim(self) -> int:
+        return self.positions.shape[-1]
+
+    @property
+    def max_length(self) -> int:
+        return self.positions.shape[1]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.positions.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.positions.device
+
+    @property
+    def mask(self) -> Tensor:
+        """(B, T) bool, True on valid samples."""
+        T = self.max_length
+        return torch.arange(T, device=self.device).unsqueeze(0) < self.lengths.unsqueeze(1)
+
+    @property
+    def start_points(self) -> Tensor:
+        """(B, d) first sample of each demonstration."""
+        return self.positions[:, 0]
+
+    @property
+    def end_points(self) -> Tensor:
+        """(B, d) last valid sample of each demonstration."""
+        return self.positions[torch.arange(self.n_demos, device=self.device), self.lengths - 1]
+
+    @property
+    def durations(self) -> Tensor:
+        """(B,) seconds from first to last valid sample."""
+        rows = torch.arange(self.n_demos, device=self.device)
+        return self.times[rows, self.lengths - 1] - self.times[:, 0]
+
+    @property
+    def dt(self) -> Tensor:
+        """(B,) median time step of each demonstration, seconds."""
+        steps = (self.times[:, 1:] - self.times[:, :-1]).masked_fill(~self.mask[:, 1:], float("nan"))
+        return steps.nanmedian(dim=1).values
+
+    # ------------------------------------------------------------------ views and conversions
+    def replace(self, **changes: Any) -> Demos:
+        """A copy with some fields replaced; validated again."""
+        return dataclasses.replace(self, **changes)
+
+    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> Demos:
+        """Cast floating tensors to ``dtype`` and move everything to ``device``."""
+        f = dict(dtype=dtype or self.dtype, device=device or self.device)
+        return Demos(
+            self.positions.to(**f),
+            self.velocities.to(**f),
+            self.times.to(**f),
+            self.lengths.to(device=f["device"]),
+            self.attractor.to(**f),
+            self.names,
+        )
+
+    def _rows(self, index: Index) -> Tensor:
+        if isinstance(index, int):
+            if not -self.n_demos <= index < self.n_demos:
+                raise IndexError(f"demonstration index {index} out of range for {self.n_demos} demonstrations")
+            return torch.tensor([index % self.n_demos], device=self.device)
+        if isinstance(index, slice):
+            return torch.arange(self.n_demos, device=self.device)[index]
+        idx = torch.as_tensor(np.asarray(index) if not isinstance(index, Tensor) else index, device=self.device)
+        if idx.dtype == torch.bool:
+            if idx.shape != (self.n_demos,):
+                raise ShapeMismatchError(f"boolean index of shape {tuple(idx.shape)} for {self.n_demos} demos")
+            return torch.nonzero(idx).reshape(-1)
+        idx = idx.reshape(-1).long()
+        if ((idx < -self.n_demos) | (idx >= self.n_demos)).any():
+            raise IndexError(f"demonstration index out of range for {self.n_demos} demonstrations: {idx.tolist()}")
+        return idx % self.n_demos
+
+    def __getitem__(self, index: Index) -> Demos:
+        """Select demonstrations (int, slice, index list, bool mask); the result is trimmed to its longest."""
+        rows = self._rows(index)
+        if rows.numel() == 0:
+            raise TooFewSamplesError("selection contains no demonstration")
+        L = self.lengths[rows]
+        T = int(L.max())
+        names = tuple(self.names[int(r)] for r in rows) if self.names else ()
+        return Demos(
+            self.positions[rows, :T],
+            self.velocities[rows, :T],
+            self.times[rows, :T],
+            L,
+            self.attractor,
+            names,
+        )
+
+    def split(self, index: Index) -> tuple[Demos, Demos]:
+        """(selected, rest): e.g. ``train, test = demos.split([0])`` trains on demo 0 and tests on the others."""
+        rows = self._rows(index)
+        keep = torch.zeros(self.n_demos, dtype=torch.bool, device=self.device)
+        keep[rows] = True
+        if keep.all():
+            raise TooFewSamplesError("split leaves no demonstration in the second part")
+        return self[keep], self[~keep]
+
+    def sequences(self) -> list[Tensor]:
+        """The B unpadded position sequences, each (T_i, d)."""
+        return [self.positions[i, : int(n)] for i, n in enumerate(self.lengths)]
+
+    def samples(self) -> tuple[Tensor, Tensor, Tensor]:
+        """All valid samples stacked: positions (N, d), velocities (N, d), demonstration index (N,)."""
+        m = self.mask
+        demo = torch.arange(self.n_demos, device=self.device).unsqueeze(1).expand_as(m)
+        return self.positions[m], self.velocities[m], demo[m]
+
+    @staticmethod
+    def concat(parts: Sequence[Demos]) -> Demos:
+        """Stack several sets that share dimension, dtype, device and attractor."""
+        if not parts:
+            raise TooFewSamplesError("nothing to concatenate")
+        first = parts[0]
+        for k, p in enumerate(parts[1:], 1):
+            if p.dim != first.dim:
+                raise ShapeMismatchError(f"part {k} has dimension {p.dim}, part 0 has {first.dim}")
+            if not torch.equal(p.attractor.to(first.attractor), first.attractor):
+                raise ShapeMismatchError(f"part {k} has a different attractor")
+        T = max(p.max_length for p in parts)
+
+        def pad(t: Tensor, mode: str) -> Tensor:
+            extra = T - t.shape[1]
+            if extra == 0:
+                return t
+            tail = t[:, -1:].expand(-1, extra, *t.shape[2:]) if mode == "edge" else t.new_zeros(
+                t.shape[0], extra, *t.shape[2:]
+            )
+            return torch.cat([t, tail], dim=1)
+
+        names = sum((p.names or tuple("" for _ in range(p.n_demos)) for p in parts), ())
+        return Demos(
+            torch.cat([pad(p.positions, "edge") for p in parts]),
+            torch.cat([pad(p.velocities, "zero") for p in parts]),
+            torch.cat([pad(p.times, "edge") for p in parts]),
+            torch.cat([p.lengths for p in parts]),
+            first.attractor,
+            names if any(names) else (),
+        )
+
+    def __repr__(self) -> str:
+        return (
+            f"Demos(n_demos={self.n_demos}, max_length={self.max_length}, dim={self.dim}, "
+            f"lengths={self.lengths.tolist() if self.n_demos <= 10 else '...'}, dtype={self.dtype}, "
+            f"device={self.device})"
+        )
