@@ -56,7 +56,7 @@ def _read_mat(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def load_lasa(
-    name: str,
+    shape: str,
     *,
     dtype: torch.dtype = torch.float64,
     device: torch.device | str | None = None,
@@ -66,17 +66,17 @@ def load_lasa(
     Positions in mm, times in s, velocities in mm/s as shipped with the data set.
 
     Raises:
-        UnknownNameError: ``name`` is not one of :data:`LASA_NAMES` (the message lists them).
+        UnknownNameError: ``shape`` is not one of :data:`LASA_NAMES` (the message lists them).
     """
-    if name not in LASA_NAMES:
-        raise UnknownNameError("LASA shape", name, LASA_NAMES)
-    pos, t, vel = _read_mat(name)
+    if shape not in LASA_NAMES:
+        raise UnknownNameError("LASA shape", shape, LASA_NAMES)
+    pos, t, vel = _read_mat(shape)
     return Demos.from_sequences(
         list(pos),
         times=list(t),
         velocities=list(vel),
         attractor=np.zeros(pos.shape[-1]),
-        names=[f"{name}/{i}" for i in range(pos.shape[0])],
+        names=[f"{shape}/{i}" for i in range(pos.shape[0])],
         dtype=dtype,
         device=device,
     )
