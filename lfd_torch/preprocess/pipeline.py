@@ -1,0 +1,74 @@
+"""The regularization pipeline as one configurable callable (Hydra group ``preprocess``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from lfd_torch.data.demos import Demos
+from lfd_torch.preprocess.regularize import (
+    estimate_velocities,
+    resample,
+    screen_dimensions,
+    smooth,
+    subsample,
+    trim_still_tail,
+)
+
+__all__ = ["Preprocess"]
+
+
+@dataclass(frozen=True)
+class Preprocess:
+    """Regularize demonstrations in a fixed order: resample -> smooth -> velocities -> trim -> screen -> subsample.
+
+    Every field is a keyword of the constructor and a key of ``conf/preprocess/*.yaml``.
+
+    Attributes:
+        smoothing: "savgol", "moving_average" or "none".
+        window: smoothing window in samples (odd); 1 disables smoothing.
+        polyorder: Savitzky-Golay polynomial order.
+        n_samples: resample every demonstration to this length (None keeps the samples).
+        resample_mode: "time" or "arc_length".
+        velocity_scheme: "central", "forward", "backward", or "given" to keep the velocities as loaded
+            (only honoured when nothing upstream changed the positions).
+        trim_position_tol, trim_velocity_tol: cut the still tail near the attractor (None disables); data units.
+        screen_threshold: drop dimensions whose variance share is below it (None disables).
+        subsample_step: keep every k-th sample (1 keeps all).
+    """
+
+    smoothing: str = "savgol"
+    window: int = 15
+    polyorder: int = 3
+    n_samples: int | None = None
+    resample_mode: str = "time"
+    velocity_scheme: str = "central"
+    trim_position_tol: float | None = None
+    trim_velocity_tol: float | None = None
+    screen_threshold: float | None = None
+    subsample_step: int = 1
+
+    def __post_init__(self) -> None:
+        if self.smoothing not in ("savgol", "moving_average", "none"):
+            raise ValueError(f"unknown smoothing {self.smoothing!r}; valid: savgol, moving_average, none")
+        if self.velocity_scheme not in ("central", "forward", "backward", "given"):
+            raise ValueError(f"unknown velocity_scheme {self.velocity_scheme!r}")
+        if (self.trim_position_tol is None) != (self.trim_velocity_tol is None):
+            raise ValueError("set both trim_position_tol and trim_velocity_tol, or neither")
+
+    def __call__(self, demos: Demos) -> Demos:
+        changed = False
+        if self.n_samples is not None:
+            demos, changed = resample(demos, self.n_samples, self.resample_mode), True
+        if self.smoothing != "none" and self.window > 1:
+            demos, changed = smooth(demos, self.window, self.smoothing, self.polyorder), True
+        if self.velocity_scheme != "given":
+            demos = estimate_velocities(demos, self.velocity_scheme)
+        elif changed:
+            raise ValueError("velocity_scheme='given' cannot be used after resampling or smoothing")
+        if self.trim_position_tol is not None:
+            demos = trim_still_tail(demos, self.trim_position_tol, self.trim_velocity_tol)
+        if self.screen_threshold is not None:
+            demos = screen_dimensions(demos, self.screen_threshold)
+        if self.subsample_step > 1:
+            demos = subsample(demos, self.subsample_step)
+        return demos
