@@ -17,6 +17,7 @@ __all__ = [
     "SolverError",
     "CertificationError",
     "StoreError",
+    "PlotError",
 ]
 
 
@@ -78,3 +79,7 @@ class CertificationError(LfdError, RuntimeError):
 
 class StoreError(LfdError, RuntimeError):
     """Reading or writing a results table or model file failed."""
+
+
+class PlotError(LfdError, ValueError):
+    """Arguments or data that cannot make the requested plot (empty metric, bad ``split``, unknown format)."""

@@ -1,0 +1,194 @@
+"""Merge the per-job results tables of a sweep into one table.
+
+A Hydra multirun leaves one ``results.parquet`` per job (``multirun/<date>/<time>/<job>/results.parquet``).
+:func:`collect` finds them, skips what is not a finished table, and merges the rest:
+
+* temporary files (names starting with ``.`` or ending with ``.tmp``: atomic writes in progress) are
+  ignored silently;
+* files that cannot be read (truncated, corrupt) or are not valid results tables are skipped with a
+  :class:`PartialSweepWarning`, so a half-finished sweep can be inspected;
+* rows that appear identically in several parts are kept once;
+* rows whose key (:data:`~lfd_torch.store.KEY_COLUMNS`) appears in several parts with different values are
+  resolved by keeping the **most recent write**: the part with the latest ``lfd_torch.written_at_ns``
+  metadata (the file's mtime for tables written by other tools), ties broken by the later path in sorted
+  order. A warning says how many keys were resolved this way;
+* the result is sorted by the key columns, columns in order: keys, then every other column in order of
+  first appearance over the parts in sorted path order. The same files give the same table.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from lfd_torch.errors import StoreError
+from lfd_torch.store.atomic import atomic_write, is_temp_file
+from lfd_torch.store.table import KEY_COLUMNS, REQUIRED_COLUMNS, validate_table, write_parquet_atomic, written_at_ns
+
+__all__ = ["collect", "find_parts", "PartialSweepWarning", "main"]
+
+_SUFFIXES = (".parquet", ".csv")
+_ORDER_COLUMNS = ("__written_at_ns", "__part")
+
+
+class PartialSweepWarning(UserWarning):
+    """A sweep part was skipped (unreadable or not a results table) or rows were resolved by recency."""
+
+
+def find_parts(root: str | os.PathLike[str], pattern: str = "**/*.parquet") -> list[Path]:
+    """Result files of a sweep, in sorted order, temporary files excluded.
+
+    Args:
+        root: a sweep directory, or one table file (returned alone).
+        pattern: glob pattern relative to ``root``.
+
+    Raises:
+        StoreError: ``root`` does not exist.
+    """
+    root = Path(root)
+    if root.is_file():
+        return [root]
+    if not root.is_dir():
+        raise StoreError(f"no such file or directory: {root}")
+    parts = []
+    for path in root.glob(pattern):
+        relative = path.relative_to(root)
+        if not path.is_file() or any(is_temp_file(part) for part in relative.parts):
+            continue
+        parts.append(path)
+    return sorted(parts)
+
+
+def _read_part(path: Path) -> pd.DataFrame | None:
+    try:
+        table = pq.read_table(path)
+        frame = table.to_pandas()
+        validate_table(frame, where=str(path))
+        written = written_at_ns(path, dict(table.schema.metadata or {}))
+    except (OSError, pa.ArrowException, StoreError) as exc:
+        warnings.warn(f"skipping sweep part {path}: {exc}", PartialSweepWarning, stacklevel=3)
+        return None
+    frame["__written_at_ns"] = written
+    frame["__part"] = str(path)
+    return frame
+
+
+def _save(frame: pd.DataFrame, path: Path) -> None:
+    suffix = path.suffix.lower()
+    if suffix == ".parquet":
+        write_parquet_atomic(frame, path)
+    elif suffix == ".csv":
+        atomic_write(path, lambda tmp: frame.to_csv(tmp, index=False))
+    else:
+        raise StoreError(f"cannot save to {path}: supported suffixes are {list(_SUFFIXES)}")
+
+
+def collect(
+    path_or_dir: str | os.PathLike[str],
+    pattern: str = "**/*.parquet",
+    *,
+    save_to: str | os.PathLike[str] | Sequence[str | os.PathLike[str]] | None = None,
+) -> pd.DataFrame:
+    """Merge a sweep's per-job results tables into one (rules in the module docstring).
+
+    Args:
+        path_or_dir: the sweep directory (e.g. ``multirun/2024-05-21/10-00-00``), or a single table file.
+        pattern: glob pattern of the parts, relative to the directory.
+        save_to: optional file(s) to write the merged table to, atomically: ``.parquet`` and/or ``.csv``.
+            A ``save_to`` file inside the sweep directory is never read back as a part.
+
+    Returns:
+        The merged table (default index). Empty, with the required columns, when no part is readable.
+
+    Raises:
+        StoreError: the directory does not exist, or ``save_to`` has an unsupported suffix or cannot be
+            written.
+
+    Warns:
+        PartialSweepWarning: for each part skipped, and once if rows were resolved by recency.
+    """
+    outputs = [] if save_to is None else [save_to] if isinstance(save_to, (str, os.PathLike)) else list(save_to)
+    outputs = [Path(p) for p in outputs]
+    bad = [p for p in outputs if p.suffix.lower() not in _SUFFIXES]
+    if bad:
+        raise StoreError(f"cannot save to {[str(p) for p in bad]}: supported suffixes are {list(_SUFFIXES)}")
+    exclude = {p.resolve() for p in outputs}
+    parts = [p for p in find_parts(path_or_dir, pattern) if p.resolve() not in exclude]
+    if not parts:
+        warnings.warn(f"no results tables match {pattern!r} under {path_or_dir}", PartialSweepWarning, stacklevel=2)
+    frames = [frame for frame in (_read_part(p) for p in parts) if frame is not None]
+
+    if frames:
+        merged = pd.concat(frames, ignore_index=True, sort=False)
+    else:
+        merged = pd.DataFrame({c: pd.Series(dtype=object) for c in (*REQUIRED_COLUMNS, *_ORDER_COLUMNS)})
+    data_columns = [c for c in merged.columns if c not in _ORDER_COLUMNS]
+    columns = list(KEY_COLUMNS) + [c for c in data_columns if c not in KEY_COLUMNS]
+
+    # Oldest first, so that "keep the last" keeps the most recent write.
+    merged = merged.sort_values(list(_ORDER_COLUMNS), kind="mergesort")
+    try:
+        merged = merged.drop_duplicates(subset=data_columns, keep="last")
+    except TypeError as exc:  # unhashable cells, e.g. arrays stored in a column
+        raise StoreError(f"cannot merge tables with non-scalar cells: {exc}") from exc
+    conflicts = merged.duplicated(subset=list(KEY_COLUMNS), keep="last")
+    if conflicts.any():
+        n_keys = merged.loc[conflicts, list(KEY_COLUMNS)].drop_duplicates().shape[0]
+        warnings.warn(
+            f"{n_keys} key(s) appear with different values in several parts; kept the most recent write",
+            PartialSweepWarning,
+            stacklevel=2,
+        )
+        merged = merged.loc[~conflicts]
+    for column in KEY_COLUMNS:  # e.g. trajectory stored as int by one job and as str by another
+        if merged[column].dtype == object and merged[column].map(type).nunique() > 1:
+            kinds = sorted({type(v).__name__ for v in merged[column]})
+            raise StoreError(f"key column {column!r} mixes types across parts: {kinds}")
+    merged = merged.sort_values(list(KEY_COLUMNS), kind="mergesort")[columns].reset_index(drop=True)
+
+    for path in outputs:
+        _save(merged, path)
+    return merged
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Command line: ``python -m lfd_torch.store.collect SWEEP_DIR [--pattern GLOB] [--out FILE ...]``.
+
+    Without ``--out`` the merged table is printed to stdout as CSV. Skipped parts are reported on stderr.
+
+    Returns:
+        The exit status (0 on success, 2 on a StoreError).
+    """
+    import argparse
+    import sys
+
+    parser = argparse.ArgumentParser(
+        prog="python -m lfd_torch.store.collect",
+        description="Merge the per-job results tables of a sweep into one table.",
+    )
+    parser.add_argument("path", help="sweep directory (or one table file)")
+    parser.add_argument("--pattern", default="**/*.parquet", help="glob of the parts (default: %(default)s)")
+    parser.add_argument(
+        "--out", action="append", default=None, help="output .parquet or .csv file (repeatable)"
+    )
+    args = parser.parse_args(argv)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", PartialSweepWarning)
+            merged = collect(args.path, args.pattern, save_to=args.out)
+    except StoreError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for warning in caught:
+        print(f"warning: {warning.message}", file=sys.stderr)
+    if args.out:
+        print(f"{len(merged)} rows -> {', '.join(args.out)}", file=sys.stderr)
+    else:
+        merged.to_csv(sys.stdout, index=False)
+    return 0
