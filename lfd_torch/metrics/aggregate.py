@@ -1,0 +1,72 @@
+"""Aggregation of per-trajectory metric values over a set of trajectories.
+
+Notation:
+    B        number of trajectories
+    values   (B,)  per-trajectory values of a metric that is a mean over terms (samples or quadrilaterals)
+    counts   (B,)  number of terms behind each value (T_i valid samples for E1/E2, T_i - 1 for E3)
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from lfd_torch.errors import InvalidDemoError, NonFiniteError, ShapeMismatchError, TooFewSamplesError, UnknownNameError
+
+__all__ = ["AGGREGATE_KINDS", "aggregate"]
+
+AGGREGATE_KINDS = ("mean", "rms")
+
+
+def aggregate(
+    values: Tensor, counts: Tensor | None = None, *, kind: Literal["mean", "rms"] = "mean"
+) -> Tensor:
+    """Combine per-trajectory metric values into one value for the set.
+
+    With ``counts`` None every trajectory weighs the same (mean over i of the per-trajectory means). With
+    ``counts`` the result is the pooled mean over all terms of all trajectories, sum_i n_i v_i / sum_i n_i: this is
+    the paper's "mean over i and t" for E1/E2 (n_i = T_i) and E3 (n_i = T_i - 1). ``kind="rms"`` pools values
+    that are themselves root-mean-squares (``velocity_error(..., kind="rms")``): sqrt(sum_i n_i v_i^2 / sum_i n_i),
+    the RMS over all terms of the set.
+
+    Args:
+        values: (B,) per-trajectory values.
+        counts: optional (B,) non-negative term counts (integer or floating), not all zero.
+        kind: ``"mean"`` or ``"rms"``.
+
+    Returns:
+        () scalar tensor, dtype of ``values``.
+
+    Raises:
+        ShapeMismatchError: ``values`` not 1-D or ``counts`` of another shape.
+        TooFewSamplesError: no value, or counts summing to zero.
+        NonFiniteError: a non-finite value with a positive weight.
+        InvalidDemoError: negative counts.
+        UnknownNameError: an unknown ``kind``.
+    """
+    if kind not in AGGREGATE_KINDS:
+        raise UnknownNameError("aggregate kind", kind, AGGREGATE_KINDS)
+    if values.ndim != 1:
+        raise ShapeMismatchError(f"values must have shape (B,), got {tuple(values.shape)}")
+    if values.numel() == 0:
+        raise TooFewSamplesError("nothing to aggregate")
+    if counts is None:
+        w = torch.ones_like(values)
+    else:
+        counts = torch.as_tensor(counts, device=values.device)
+        if counts.shape != values.shape:
+            raise ShapeMismatchError(f"counts have shape {tuple(counts.shape)}, values {tuple(values.shape)}")
+        w = counts.to(values.dtype)
+        if (w < 0).any():
+            raise InvalidDemoError("counts must be non-negative", int(torch.nonzero(w < 0)[0]))
+        if not w.sum() > 0:
+            raise TooFewSamplesError("counts sum to zero")
+    bad = ~torch.isfinite(values) & (w > 0)
+    if bad.any():
+        raise NonFiniteError("value is not finite", int(torch.nonzero(bad)[0]))
+    x = values.square() if kind == "rms" else values
+    zero = torch.zeros((), dtype=values.dtype, device=values.device)
+    pooled = torch.where(w > 0, w * x, zero).sum() / w.sum()
+    return pooled.sqrt() if kind == "rms" else pooled
