@@ -97,7 +97,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         written.append(Path(cfg.paths.figures) / f"{cfg.experiment}_{cfg.plot_metric}.png")
         violin(table, cfg.plot_metric, by="shape", path=written[-1])
     summary = table.groupby("shape")[["path_length", "smoothing_velocity_e1", "smoothing_area"]].mean()
-    log.info("per-shape means:\n%s", summary.to_string(float_format=lambda v: f"{v:.3f}"))
+    log.info("per-shape means:\n%s", summary.to_string(float_format=lambda v: f"{v:.4g}"))
     return {"table": table, "written": written}
 
 

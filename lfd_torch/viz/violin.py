@@ -223,6 +223,8 @@ def violin(
         raise PlotError(f"split=True needs a hue with exactly two levels, got {hue_levels}")
 
     if ax is None:
+        if len(order) > 8:  # keep ~0.35 inch per level so many shapes stay legible
+            figsize = (max(figsize[0], 0.35 * len(order) + 1.5), figsize[1])
         fig, (ax,) = _new_figure(figsize)
     else:
         fig = ax.figure
@@ -271,6 +273,11 @@ def violin(
         )
 
     ax.set_xlabel(by)
+    if len(order) > 6 or max((len(str(level)) for level in order), default=0) > 12:
+        ax.tick_params(axis="x", labelrotation=60)
+        for label in ax.get_xticklabels():
+            label.set_horizontalalignment("right")
+            label.set_rotation_mode("anchor")
     ax.set_ylabel(ylabel if ylabel is not None else metric)
     if title is not None:
         ax.set_title(title)
