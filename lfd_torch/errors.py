@@ -8,6 +8,7 @@ from __future__ import annotations
 
 __all__ = [
     "LfdError",
+    "InvalidArgumentError",
     "InvalidDemoError",
     "NonFiniteError",
     "TooFewSamplesError",
@@ -25,7 +26,11 @@ class LfdError(Exception):
     """Base class of every error raised by lfd_torch."""
 
 
-class InvalidDemoError(LfdError, ValueError):
+class InvalidArgumentError(LfdError, ValueError):
+    """An argument outside its valid range or of the wrong kind (a tolerance < 0, a non-callable field, ...)."""
+
+
+class InvalidDemoError(InvalidArgumentError):
     """A demonstration fails validation.
 
     Attributes:

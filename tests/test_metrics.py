@@ -10,7 +10,7 @@ import torch
 
 import lfd_torch.metrics.dtw as dtw_module
 from lfd_torch.errors import (
-    InvalidDemoError,
+    InvalidArgumentError,
     NonFiniteError,
     ShapeMismatchError,
     TooFewSamplesError,
@@ -412,11 +412,11 @@ def test_errors_on_bad_input():
         velocity_error(x, x, lengths=torch.tensor([0, 5]))
     with pytest.raises(TooFewSamplesError):
         dtw_distance(x, x, torch.tensor([3, 0]))
-    with pytest.raises(InvalidDemoError):
+    with pytest.raises(InvalidArgumentError):
         velocity_error(x, x, torch.ones(2, 5, dtype=torch.bool), lengths=torch.tensor([5, 5]))
-    with pytest.raises(InvalidDemoError):
+    with pytest.raises(InvalidArgumentError):
         velocity_error(x, x, torch.ones(2, 5))  # float mask
-    with pytest.raises(InvalidDemoError):
+    with pytest.raises(InvalidArgumentError):
         cosine_dissimilarity(x, x, eps=-1.0)
     with pytest.raises(UnknownNameError):
         velocity_error(x, x, kind="mse")

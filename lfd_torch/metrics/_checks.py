@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import InvalidDemoError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
 
 __all__ = ["as_trajectories", "check_finite", "check_lengths", "resolve_mask"]
 
@@ -30,7 +30,7 @@ def as_trajectories(*named: tuple[str, Tensor], min_dim: int = 1) -> tuple[Tenso
         if x.ndim != 3:
             raise ShapeMismatchError(f"{name} must have shape (B, T, d), got {tuple(x.shape)}")
         if not x.is_floating_point():
-            raise InvalidDemoError(f"{name} must be floating point, got {x.dtype}")
+            raise InvalidArgumentError(f"{name} must be floating point, got {x.dtype}")
         dtype = x.dtype if dtype is None else torch.promote_types(dtype, x.dtype)
     (first_name, first), *rest = named
     for name, x in rest:
@@ -53,7 +53,7 @@ def check_lengths(lengths: Tensor | None, B: int, T: int, device: torch.device, 
         return torch.full((B,), T, dtype=torch.long, device=device)
     lengths = torch.as_tensor(lengths, device=device)
     if lengths.is_floating_point() or lengths.is_complex() or lengths.dtype == torch.bool:
-        raise InvalidDemoError(f"{name} must be an integer tensor, got {lengths.dtype}")
+        raise InvalidArgumentError(f"{name} must be an integer tensor, got {lengths.dtype}")
     if lengths.shape != (B,):
         raise ShapeMismatchError(f"{name} must have shape ({B},), got {tuple(lengths.shape)}")
     lengths = lengths.to(torch.long)
@@ -72,18 +72,18 @@ def resolve_mask(
     """The (B, T) bool mask of valid samples, from ``mask``, from ``lengths`` or (neither) all True.
 
     Raises:
-        InvalidDemoError: both ``mask`` and ``lengths`` given, or a mask that is not bool.
+        InvalidArgumentError: both ``mask`` and ``lengths`` given, or a mask that is not bool.
         ShapeMismatchError: a mask that is not (B, T), or a length above T.
         TooFewSamplesError: a trajectory with fewer than ``min_samples`` valid samples.
     """
     if mask is not None and lengths is not None:
-        raise InvalidDemoError("give either mask or lengths, not both")
+        raise InvalidArgumentError("give either mask or lengths, not both")
     if mask is None:
         n = check_lengths(lengths, B, T, device)
         mask = torch.arange(T, device=device).unsqueeze(0) < n.unsqueeze(1)
     else:
         if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
-            raise InvalidDemoError("mask must be a bool tensor of shape (B, T)")
+            raise InvalidArgumentError("mask must be a bool tensor of shape (B, T)")
         if mask.shape != (B, T):
             raise ShapeMismatchError(f"mask must have shape ({B}, {T}), got {tuple(mask.shape)}")
         mask = mask.to(device)

@@ -19,7 +19,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import InvalidDemoError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError, TooFewSamplesError
 from lfd_torch.metrics._checks import check_finite, check_lengths
 
 __all__ = ["dtw_distance"]
@@ -36,7 +36,7 @@ def _check_pair(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
         if x.ndim != 3:
             raise ShapeMismatchError(f"{name} must have shape (B, T, d), got {tuple(x.shape)}")
         if not x.is_floating_point():
-            raise InvalidDemoError(f"{name} must be floating point, got {x.dtype}")
+            raise InvalidArgumentError(f"{name} must be floating point, got {x.dtype}")
     if a.shape[0] != b.shape[0]:
         raise ShapeMismatchError(f"a holds {a.shape[0]} trajectories, b holds {b.shape[0]}")
     if a.shape[2] != b.shape[2]:

@@ -16,7 +16,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import InvalidDemoError, UnknownNameError
+from lfd_torch.errors import InvalidArgumentError, UnknownNameError
 from lfd_torch.metrics._checks import as_trajectories, check_finite, resolve_mask
 
 __all__ = ["VELOCITY_ERROR_KINDS", "velocity_error", "cosine_dissimilarity"]
@@ -102,10 +102,10 @@ def cosine_dissimilarity(
 
     Raises:
         ShapeMismatchError, NonFiniteError, TooFewSamplesError: as for :func:`velocity_error`.
-        InvalidDemoError: a negative or non-finite ``eps``.
+        InvalidArgumentError: a negative or non-finite ``eps``.
     """
     if not 0.0 <= eps < float("inf"):
-        raise InvalidDemoError(f"eps must be finite and >= 0, got {eps}")
+        raise InvalidArgumentError(f"eps must be finite and >= 0, got {eps}")
     pred, ref = as_trajectories(("pred_x_dot", pred_x_dot), ("ref_x_dot", ref_x_dot))
     B, T, _ = pred.shape
     valid = resolve_mask(mask, lengths, B, T, pred.device, min_samples=1)
