@@ -13,7 +13,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError, TooFewSamplesError, UnknownNameError
+from lfd_torch.errors import InvalidArgumentError, InvalidDemoError, NonFiniteError, ShapeMismatchError, TooFewSamplesError, UnknownNameError
 
 __all__ = ["AGGREGATE_KINDS", "aggregate"]
 
@@ -60,7 +60,7 @@ def aggregate(
             raise ShapeMismatchError(f"counts have shape {tuple(counts.shape)}, values {tuple(values.shape)}")
         w = counts.to(values.dtype)
         if (w < 0).any():
-            raise InvalidArgumentError("counts must be non-negative", int(torch.nonzero(w < 0)[0]))
+            raise InvalidDemoError("counts must be non-negative", int(torch.nonzero(w < 0)[0]))
         if not w.sum() > 0:
             raise TooFewSamplesError("counts sum to zero")
     bad = ~torch.isfinite(values) & (w > 0)
