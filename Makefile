@@ -27,8 +27,9 @@ run: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n 2 tests
 
+# glibc malloc otherwise returns and re-requests the field's temporaries every step (page-fault storm).
 bench: $(STAMP)
-	$(BIN)/python experiments/bench_core.py
+	MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=1073741824 $(BIN)/python experiments/bench_core.py
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache

@@ -19,6 +19,7 @@ __all__ = [
     "CertificationError",
     "StoreError",
     "PlotError",
+    "InvalidGMMError",
 ]
 
 
@@ -88,3 +89,8 @@ class StoreError(LfdError, RuntimeError):
 
 class PlotError(LfdError, ValueError):
     """Arguments or data that cannot make the requested plot (empty metric, bad ``split``, unknown format)."""
+
+
+class InvalidGMMError(InvalidArgumentError):
+    """Mixture parameters that do not define a valid density (negative weights, weights not summing to 1,
+    covariances that are not symmetric positive definite)."""

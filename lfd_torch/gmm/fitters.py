@@ -1,0 +1,115 @@
+"""Config-friendly fitters: one frozen dataclass per method whose fields are the method's hyperparameters.
+
+Every fitter is called the same way, ``fitter(x, x_dot, *, generator) -> GMM``, so LPV-DS can take any of
+them from ``conf/gmm/<method>.yaml`` (``_target_`` + the fields below, one for one). Methods that ignore
+velocities (EM, EM+BIC) accept and ignore ``x_dot``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from lfd_torch.gmm.damm import fit_damm
+from lfd_torch.gmm.em import fit_em, fit_em_bic
+from lfd_torch.gmm.model import GMM
+from lfd_torch.gmm.pcgmm import fit_pcgmm
+
+__all__ = ["PCGMMFitter", "DAMMFitter", "EMFitter", "EMBICFitter"]
+
+
+@dataclass(frozen=True)
+class PCGMMFitter:
+    """PC-GMM (:func:`~lfd_torch.gmm.pcgmm.fit_pcgmm`); the fields are its hyperparameters."""
+
+    length_scale: float | None = None
+    alpha: float = 1.0
+    kappa0: float = 1.0
+    nu0_offset: float = 10.0
+    psi_scale: float = 1.0
+    n_iter: int = 20
+    min_cluster_size: int | None = None
+    max_points: int | None = 500
+    reg_covar: float = 1e-3
+    uses_velocities = True
+
+    def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
+        """Fit to positions x (N, d) and velocities x_dot (N, d) (required)."""
+        if x_dot is None:
+            raise TypeError("PC-GMM needs velocities x_dot")
+        return fit_pcgmm(
+            x, x_dot, generator=generator, length_scale=self.length_scale, alpha=self.alpha, kappa0=self.kappa0,
+            nu0_offset=self.nu0_offset, psi_scale=self.psi_scale, n_iter=self.n_iter,
+            min_cluster_size=self.min_cluster_size, max_points=self.max_points, reg_covar=self.reg_covar,
+        )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class DAMMFitter:
+    """DAMM-like mixture (:func:`~lfd_torch.gmm.damm.fit_damm`); the fields are its hyperparameters."""
+
+    alpha: float = 1.0
+    kappa: float = 5.0
+    kappa0: float = 1.0
+    nu0_offset: float = 10.0
+    psi_scale: float = 1.0
+    n_iter: int = 20
+    min_cluster_size: int | None = None
+    reg_covar: float = 1e-3
+    uses_velocities = True
+
+    def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
+        """Fit to positions x (N, d) and velocities x_dot (N, d) (required)."""
+        if x_dot is None:
+            raise TypeError("DAMM needs velocities x_dot")
+        return fit_damm(
+            x, x_dot, generator=generator, alpha=self.alpha, kappa=self.kappa, kappa0=self.kappa0,
+            nu0_offset=self.nu0_offset, psi_scale=self.psi_scale, n_iter=self.n_iter,
+            min_cluster_size=self.min_cluster_size, reg_covar=self.reg_covar,
+        )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class EMFitter:
+    """EM with a fixed number of components (:func:`~lfd_torch.gmm.em.fit_em`)."""
+
+    n_components: int = 5
+    n_init: int = 1
+    max_iter: int = 100
+    tol: float = 1e-6
+    reg_covar: float = 1e-6
+    kmeans_iter: int = 10
+    uses_velocities = False
+
+    def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
+        """Fit to positions x (N, d); ``x_dot`` is ignored."""
+        return fit_em(
+            x, self.n_components, generator=generator, n_init=self.n_init, max_iter=self.max_iter, tol=self.tol,
+            reg_covar=self.reg_covar, kmeans_iter=self.kmeans_iter,
+        )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class EMBICFitter:
+    """EM for every K in ``k_range``, lowest BIC kept (:func:`~lfd_torch.gmm.em.fit_em_bic`)."""
+
+    k_range: Sequence[int] = field(default=tuple(range(1, 11)))
+    n_init: int = 1
+    max_iter: int = 100
+    tol: float = 1e-6
+    reg_covar: float = 1e-6
+    kmeans_iter: int = 10
+    uses_velocities = False
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "k_range", tuple(int(k) for k in self.k_range))
+
+    def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
+        """Fit to positions x (N, d); ``x_dot`` is ignored."""
+        return fit_em_bic(
+            x, k_range=self.k_range, generator=generator, n_init=self.n_init, max_iter=self.max_iter, tol=self.tol,
+            reg_covar=self.reg_covar, kmeans_iter=self.kmeans_iter,
+        )  # fmt: skip

@@ -1,0 +1,306 @@
+"""GMM dataclass, EM / EM+BIC, post-processing and the config fitters of lfd_torch.gmm."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.stats
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from conftest import requires_cuda
+from lfd_torch.errors import LfdError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.gmm import (
+    GMM,
+    DAMMFitter,
+    EMBICFitter,
+    EMFitter,
+    InvalidGMMError,
+    PCGMMFitter,
+    bic,
+    fit_em,
+    fit_em_bic,
+    kmeans_plus_plus,
+    merge_small_components,
+    n_parameters,
+    order_by_attractor,
+    refine_em,
+    regularize_covariances,
+)
+
+F64 = torch.float64
+CONF = Path(__file__).resolve().parents[1] / "conf"
+
+
+def random_gmm(K: int, d: int, generator: torch.Generator, dtype: torch.dtype = F64) -> GMM:
+    w = torch.rand(K, generator=generator, dtype=dtype) + 0.1
+    mu = 3 * torch.randn(K, d, generator=generator, dtype=dtype)
+    A = torch.randn(K, d, d, generator=generator, dtype=dtype)
+    cov = A @ A.transpose(-2, -1) + 0.5 * torch.eye(d, dtype=dtype)
+    return GMM(w / w.sum(), mu, cov)
+
+
+def blobs(
+    centers: list[list[float]], n: int, std: float, generator: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor]:
+    c = torch.tensor(centers, dtype=F64)
+    lab = torch.arange(len(centers)).repeat_interleave(n)
+    return c[lab] + std * torch.randn(lab.shape[0], c.shape[1], generator=generator, dtype=F64), lab
+
+
+# ---------------------------------------------------------------------------------------------- densities
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_log_prob_matches_scipy_mixture(generator: torch.Generator, d: int) -> None:
+    gmm = random_gmm(4, d, generator)
+    x = 3 * torch.randn(5, 7, d, generator=generator, dtype=F64)
+    comps = np.stack(
+        [
+            float(gmm.weights[k]) * scipy.stats.multivariate_normal(gmm.means[k].numpy(), gmm.covariances[k].numpy())
+            .pdf(x.reshape(-1, d).numpy()).reshape(-1)
+            for k in range(4)
+        ],
+        axis=-1,
+    )  # fmt: skip
+    ref = np.log(comps.sum(-1)).reshape(5, 7)
+    torch.testing.assert_close(gmm.log_prob(x), torch.as_tensor(ref), rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(
+        gmm.log_prob_components(x).reshape(-1, 4), torch.as_tensor(np.log(comps)), rtol=1e-10, atol=1e-10
+    )
+    assert gmm.log_prob(x).shape == (5, 7)
+
+
+def test_posterior_sums_to_one_and_equals_naive_loop(generator: torch.Generator) -> None:
+    gmm = random_gmm(3, 2, generator)
+    x = 4 * torch.randn(50, 2, generator=generator, dtype=F64)
+    gamma = gmm.posterior(x)
+    torch.testing.assert_close(gamma.sum(-1), torch.ones(50, dtype=F64))
+    naive = torch.zeros(50, 3, dtype=F64)
+    for n in range(50):
+        dens = []
+        for k in range(3):
+            diff = x[n] - gmm.means[k]
+            S = gmm.covariances[k]
+            q = diff @ torch.linalg.solve(S, diff)
+            norm = math.sqrt(float(torch.det(2 * math.pi * S)))
+            dens.append(float(gmm.weights[k]) * math.exp(-0.5 * float(q)) / norm)
+        for k in range(3):
+            naive[n, k] = dens[k] / sum(dens)
+    torch.testing.assert_close(gamma, naive, rtol=1e-10, atol=1e-12)
+
+
+def test_posterior_stays_normalised_far_from_data(generator: torch.Generator) -> None:
+    gmm = random_gmm(3, 2, generator)
+    x = torch.tensor([[1e4, -1e4], [1e6, 1e6]], dtype=F64)
+    gamma = gmm.posterior(x)
+    assert torch.isfinite(gamma).all()
+    torch.testing.assert_close(gamma.sum(-1), torch.ones(2, dtype=F64))
+    assert (gmm.log_prob(x) < -1e3).all()
+
+
+def test_sample_moments_monte_carlo(generator: torch.Generator) -> None:
+    gmm = random_gmm(2, 2, generator)
+    x, labels = gmm.sample(200_000, generator=generator)
+    mean = (gmm.weights[:, None] * gmm.means).sum(0)
+    second = (gmm.weights[:, None, None] * (gmm.covariances + gmm.means[:, :, None] * gmm.means[:, None, :])).sum(0)
+    cov = second - torch.outer(mean, mean)
+    scale = float(torch.linalg.eigvalsh(cov).max().sqrt())
+    torch.testing.assert_close(x.mean(0), mean, atol=0.02 * scale, rtol=0)
+    torch.testing.assert_close(torch.cov(x.T), cov, atol=0.03 * scale**2, rtol=0)
+    freq = torch.bincount(labels, minlength=2).to(F64) / labels.numel()
+    torch.testing.assert_close(freq, gmm.weights, atol=0.005, rtol=0)
+
+
+def test_from_labels_is_the_ml_fit_of_each_group(generator: torch.Generator) -> None:
+    x = torch.randn(30, 2, generator=generator, dtype=F64)
+    labels = torch.tensor([5, 9] * 15)
+    gmm = GMM.from_labels(x, labels, reg_covar=0.0)
+    for k, lab in enumerate([5, 9]):
+        part = x[labels == lab]
+        torch.testing.assert_close(gmm.means[k], part.mean(0))
+        torch.testing.assert_close(gmm.covariances[k], torch.cov(part.T, correction=0))
+    torch.testing.assert_close(gmm.weights, torch.tensor([0.5, 0.5], dtype=F64))
+
+
+def test_to_and_state_dict_round_trip(generator: torch.Generator) -> None:
+    gmm = random_gmm(3, 2, generator)
+    g32 = gmm.to(dtype=torch.float32)
+    assert g32.dtype == torch.float32 and g32.n_components == 3 and g32.dim == 2 and g32.device.type == "cpu"
+    back = GMM.from_state_dict(gmm.state_dict())
+    x = torch.randn(10, 2, generator=generator, dtype=F64)
+    torch.testing.assert_close(back.log_prob(x), gmm.log_prob(x), rtol=0, atol=0)
+    torch.testing.assert_close(g32.log_prob(x.float()), gmm.log_prob(x).float(), rtol=1e-5, atol=1e-5)
+    with pytest.raises(ShapeMismatchError):
+        GMM.from_state_dict({**gmm.state_dict(), "extra": torch.zeros(1)})
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        gmm.weights = gmm.weights  # type: ignore[misc]
+
+
+@requires_cuda
+def test_cuda_matches_cpu(generator: torch.Generator) -> None:
+    gmm = random_gmm(3, 2, generator)
+    x = torch.randn(100, 2, generator=generator, dtype=F64)
+    gc = gmm.to(device="cuda")
+    torch.testing.assert_close(gc.posterior(x.cuda()).cpu(), gmm.posterior(x))
+
+
+def test_invalid_parameters_raise_typed_errors() -> None:
+    w = torch.tensor([0.5, 0.5], dtype=F64)
+    mu = torch.zeros(2, 2, dtype=F64)
+    cov = torch.eye(2, dtype=F64).repeat(2, 1, 1)
+    GMM(w, mu, cov)  # valid
+    with pytest.raises(InvalidGMMError):
+        GMM(torch.tensor([1.5, -0.5], dtype=F64), mu, cov)
+    with pytest.raises(InvalidGMMError):
+        GMM(torch.tensor([0.5, 0.6], dtype=F64), mu, cov)
+    bad = cov.clone()
+    bad[1] = torch.tensor([[1.0, 2.0], [2.0, 1.0]], dtype=F64)  # indefinite
+    with pytest.raises(InvalidGMMError, match="covariance 1"):
+        GMM(w, mu, bad)
+    asym = cov.clone()
+    asym[0, 0, 1] = 0.5
+    with pytest.raises(InvalidGMMError, match="symmetric"):
+        GMM(w, mu, asym)
+    with pytest.raises(NonFiniteError):
+        GMM(w, torch.tensor([[0.0, float("nan")], [0.0, 0.0]], dtype=F64), cov)
+    with pytest.raises(ShapeMismatchError):
+        GMM(w, mu, cov[:, :1, :1])
+    with pytest.raises(ShapeMismatchError):
+        GMM(w.float(), mu, cov)
+    gmm = GMM(w, mu, cov)
+    with pytest.raises(ShapeMismatchError):
+        gmm.log_prob(torch.zeros(4, 3, dtype=F64))
+    with pytest.raises(ShapeMismatchError):
+        gmm.log_prob(torch.zeros(4, 2, dtype=torch.float32))
+    assert issubclass(InvalidGMMError, LfdError) and issubclass(InvalidGMMError, ValueError)
+
+
+# ---------------------------------------------------------------------------------------------- EM
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), K=st.integers(1, 5), d=st.integers(1, 3))
+def test_em_objective_never_decreases(seed: int, K: int, d: int) -> None:
+    g = torch.Generator().manual_seed(seed)
+    x = torch.cat([torch.randn(40, d, generator=g, dtype=F64) * (1 + k) + 3 * k for k in range(3)])
+    init = fit_em(x, K, generator=g, max_iter=0)  # k-means++ start, no EM step
+    gmm, hist = refine_em(x, init, max_iter=60, tol=0.0)
+    steps = hist[1:] - hist[:-1]
+    assert (steps >= -1e-9 * hist.abs().max()).all(), steps.min()
+    assert hist.shape[0] >= 2 and torch.isfinite(hist).all()
+
+
+def test_em_repeats_exactly_under_the_same_seed() -> None:
+    x, _ = blobs([[0, 0], [5, 5], [0, 6]], 80, 1.0, torch.Generator().manual_seed(1))
+    a = fit_em(x, 3, generator=torch.Generator().manual_seed(7), n_init=2)
+    b = fit_em(x, 3, generator=torch.Generator().manual_seed(7), n_init=2)
+    for k in ("weights", "means", "covariances"):
+        assert torch.equal(a.state_dict()[k], b.state_dict()[k])
+
+
+def test_em_recovers_separated_clusters(generator: torch.Generator) -> None:
+    centers = [[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]]
+    x, _ = blobs(centers, 300, 1.0, generator)
+    gmm = fit_em(x, 3, generator=generator, n_init=3)
+    order = torch.argsort(gmm.means[:, 0] + 2 * gmm.means[:, 1])
+    torch.testing.assert_close(gmm.means[order], torch.tensor(centers, dtype=F64)[[0, 1, 2]], atol=0.2, rtol=0)
+    for k in range(3):
+        torch.testing.assert_close(gmm.covariances[k], torch.eye(2, dtype=F64), atol=0.25, rtol=0)
+    torch.testing.assert_close(gmm.weights, torch.full((3,), 1 / 3, dtype=F64), atol=0.02, rtol=0)
+
+
+@pytest.mark.parametrize("true_k", [1, 3, 4])
+def test_bic_picks_the_true_k(true_k: int) -> None:
+    centers = [[0.0, 0.0], [12.0, 0.0], [0.0, 12.0], [12.0, 12.0]][:true_k]
+    x, _ = blobs(centers, 150, 1.0, torch.Generator().manual_seed(3))
+    gmm = fit_em_bic(x, k_range=range(1, 8), generator=torch.Generator().manual_seed(4), n_init=2)
+    assert gmm.n_components == true_k
+
+
+def test_bic_formula(generator: torch.Generator) -> None:
+    x, _ = blobs([[0, 0]], 100, 1.0, generator)
+    gmm = fit_em(x, 2, generator=generator)
+    assert n_parameters(2, 2) == 1 + 4 + 6
+    assert bic(gmm, x) == pytest.approx(-2 * float(gmm.log_prob(x).sum()) + 11 * math.log(100))
+
+
+def test_kmeans_plus_plus_uses_every_label(generator: torch.Generator) -> None:
+    x, _ = blobs([[0, 0], [3, 3]], 20, 0.5, generator)
+    labels = kmeans_plus_plus(x, 7, generator=generator)
+    assert labels.shape == (40,)
+    assert set(labels.tolist()) == set(range(7))
+
+
+def test_em_bad_input_raises_typed_errors(generator: torch.Generator) -> None:
+    x = torch.randn(10, 2, generator=generator, dtype=F64)
+    with pytest.raises(NonFiniteError):
+        fit_em(torch.cat([x, torch.full((1, 2), float("nan"), dtype=F64)]), 2, generator=generator)
+    with pytest.raises(TooFewSamplesError):
+        fit_em(x[:2], 3, generator=generator)
+    with pytest.raises(TooFewSamplesError):
+        fit_em(x, 0, generator=generator)
+    with pytest.raises(ShapeMismatchError):
+        fit_em(x[:, 0], 1, generator=generator)
+    with pytest.raises(TooFewSamplesError):
+        fit_em_bic(x[:2], k_range=[5, 6], generator=generator)
+
+
+# ---------------------------------------------------------------------------------------------- post-processing
+def test_order_by_attractor(generator: torch.Generator) -> None:
+    gmm = random_gmm(5, 2, generator)
+    g = torch.tensor([1.0, -2.0], dtype=F64)
+    out = order_by_attractor(gmm, g)
+    dist = torch.linalg.vector_norm(out.means - g, dim=-1)
+    assert (dist[1:] >= dist[:-1]).all()
+    x = torch.randn(20, 2, generator=generator, dtype=F64)
+    torch.testing.assert_close(out.log_prob(x), gmm.log_prob(x))
+    with pytest.raises(ShapeMismatchError):
+        order_by_attractor(gmm, torch.zeros(3, dtype=F64))
+
+
+def test_regularize_covariances_floors_thin_clusters() -> None:
+    R = torch.tensor([[math.cos(0.3), -math.sin(0.3)], [math.sin(0.3), math.cos(0.3)]], dtype=F64)
+    thin = R @ torch.diag(torch.tensor([100.0, 1e-4], dtype=F64)) @ R.T
+    fat = torch.diag(torch.tensor([4.0, 2.0], dtype=F64))
+    gmm = GMM(torch.tensor([0.5, 0.5], dtype=F64), torch.zeros(2, 2, dtype=F64), torch.stack([thin, fat]))
+    out = regularize_covariances(gmm, min_eig_ratio=1e-2)
+    ev, vec = torch.linalg.eigh(out.covariances[0])
+    torch.testing.assert_close(ev, torch.tensor([1.0, 100.0], dtype=F64))
+    torch.testing.assert_close((vec.T @ R).abs(), torch.tensor([[0.0, 1.0], [1.0, 0.0]], dtype=F64), atol=1e-10, rtol=0)
+    torch.testing.assert_close(out.covariances[1], fat)  # already well conditioned: unchanged
+    out_abs = regularize_covariances(gmm, min_eig_ratio=0.0, min_eig=3.0)
+    assert float(torch.linalg.eigvalsh(out_abs.covariances[1]).min()) == pytest.approx(3.0)
+    with pytest.raises(InvalidGMMError):
+        regularize_covariances(gmm, min_eig_ratio=2.0)
+
+
+def test_merge_small_components() -> None:
+    x = torch.tensor([[0.0], [0.1], [0.2], [10.0], [10.1], [10.2], [9.0], [0.5]], dtype=F64)
+    labels = torch.tensor([0, 0, 0, 1, 1, 1, 2, 3])
+    out = merge_small_components(x, labels, min_size=2)
+    assert out.tolist() == [0, 0, 0, 1, 1, 1, 1, 0]
+
+
+# ---------------------------------------------------------------------------------------------- configs
+@pytest.mark.parametrize(
+    "name, cls", [("pcgmm", PCGMMFitter), ("damm", DAMMFitter), ("em", EMFitter), ("em_bic", EMBICFitter)]
+)
+def test_gmm_configs_match_fitter_fields_and_run(name: str, cls: type, generator: torch.Generator) -> None:
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(config_dir=str(CONF / "gmm"), version_base="1.3"):
+        cfg = compose(config_name=name)
+    keys = set(OmegaConf.to_container(cfg)) - {"_target_"}
+    assert keys == {f.name for f in dataclasses.fields(cls)}
+    fitter = instantiate(cfg)
+    assert isinstance(fitter, cls)
+    assert fitter == cls()  # the yaml repeats the defaults
+    x, _ = blobs([[0, 0], [8, 0]], 60, 1.0, generator)
+    noise = 0.1 * torch.randn(120, 2, generator=generator, dtype=F64)
+    x_dot = torch.tensor([1.0, 0.0], dtype=F64).repeat(120, 1) + noise
+    gmm = fitter(x, x_dot, generator=generator)
+    assert isinstance(gmm, GMM) and gmm.dim == 2

@@ -1,0 +1,287 @@
+"""PC-GMM (ddCRP collapsed Gibbs) and the DAMM-like sampler of lfd_torch.gmm."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import Counter
+
+import numpy as np
+import pytest
+import scipy.integrate
+import scipy.stats
+import torch
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from conftest import requires_cuda
+from lfd_torch.errors import NonFiniteError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.gmm import GMM, InvalidGMMError, damm_labels, fit_damm, fit_pcgmm, pcgmm_labels
+from lfd_torch.gmm._niw import NIWPrior, niw_log_marginal_torch
+from lfd_torch.gmm.damm import sample_gamma, vmf_log_normalizer
+from lfd_torch.gmm.pcgmm import _ddcrp_gibbs, _flat_features, _LogMarginal, prior_weights
+
+F64 = torch.float64
+
+
+def adjusted_rand_index(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Hubert & Arabie's ARI from the contingency table (1 = same partition, ~0 = chance)."""
+    _, a = torch.unique(a, return_inverse=True)
+    _, b = torch.unique(b, return_inverse=True)
+    n = a.numel()
+    table = torch.zeros(int(a.max()) + 1, int(b.max()) + 1, dtype=F64)
+    table.index_put_((a, b), torch.ones(n, dtype=F64), accumulate=True)
+
+    def pairs(t: torch.Tensor) -> float:
+        return float((t * (t - 1) / 2).sum())
+
+    index, rows, cols, total = pairs(table), pairs(table.sum(1)), pairs(table.sum(0)), n * (n - 1) / 2
+    expected = rows * cols / total
+    top = (rows + cols) / 2
+    return 1.0 if top == expected else (index - expected) / (top - expected)
+
+
+def z_field(n: int, generator: torch.Generator, width: float = 0.5) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Three adjacent linear regimes (a 'Z'): rightwards along the top, diagonally down-left, rightwards
+    along the bottom; n samples per regime spread uniformly along it, velocities of 20 units/s with noise."""
+    starts = torch.tensor([[0.0, 10.0], [10.0, 10.0], [0.0, 0.0]], dtype=F64)
+    ends = torch.tensor([[10.0, 10.0], [0.0, 0.0], [10.0, 0.0]], dtype=F64)
+    lab = torch.arange(3).repeat_interleave(n)
+    t = torch.rand(3 * n, 1, generator=generator, dtype=F64)
+    seg = ends[lab] - starts[lab]
+    u = seg / seg.norm(dim=-1, keepdim=True)
+    normal = torch.stack([-u[:, 1], u[:, 0]], -1)
+    x = starts[lab] + t * seg + width * torch.randn(3 * n, 1, generator=generator, dtype=F64) * normal
+    x_dot = 20 * (u + 0.1 * torch.randn(3 * n, 2, generator=generator, dtype=F64))
+    return x, x_dot, lab
+
+
+def test_adjusted_rand_index_reference_values() -> None:
+    a = torch.tensor([0, 0, 1, 1, 2, 2])
+    assert adjusted_rand_index(a, a) == 1.0
+    assert adjusted_rand_index(a, torch.tensor([5, 5, 3, 3, 9, 9])) == 1.0
+    # hand-computed: contingency [[2,0],[1,1],[0,2]] -> index 2, rows 3, cols 6, total 15 -> (2-1.2)/(4.5-1.2)
+    assert adjusted_rand_index(a, torch.tensor([0, 0, 0, 1, 1, 1])) == pytest.approx(0.8 / 3.3)
+
+
+# ---------------------------------------------------------------------------------------------- NIW marginal
+def test_niw_marginal_equals_chain_of_student_t_predictives() -> None:
+    rng = np.random.default_rng(0)
+    d, kappa0, nu0 = 2, 0.7, 5.0
+    psi0 = np.array([[2.0, 0.3], [0.3, 1.0]])
+    mu0 = np.array([0.5, -0.2])
+    y = rng.normal(size=(6, d))
+    prior = NIWPrior(mu0, kappa0, nu0, psi0)
+    const, _ = prior.tables(10)
+    got = prior.log_marginal(np.array([6.0]), y.sum(0)[None], (y.T @ y)[None], const)[0]
+    # reference: p(y_1..n) = prod_i p(y_i | y_<i), each a multivariate Student t (Murphy 2007, eq. 258)
+    ref, mu, kap, nu, psi = 0.0, mu0.copy(), kappa0, nu0, psi0.copy()
+    for yi in y:
+        dof = nu - d + 1
+        ref += scipy.stats.multivariate_t(loc=mu, shape=psi * (kap + 1) / (kap * dof), df=dof).logpdf(yi)
+        mu_new = (kap * mu + yi) / (kap + 1)
+        psi = psi + kap / (kap + 1) * np.outer(yi - mu, yi - mu)
+        mu, kap, nu = mu_new, kap + 1, nu + 1
+    assert got == pytest.approx(ref, rel=1e-10)
+    # torch version (prior mean 0) against the numpy one
+    p0 = NIWPrior(np.zeros(d), kappa0, nu0, psi0)
+    c0, _ = p0.tables(10)
+    ref0 = p0.log_marginal(np.array([6.0]), y.sum(0)[None], (y.T @ y)[None], c0)[0]
+    t = niw_log_marginal_torch(
+        torch.tensor([6.0, 0.0], dtype=F64), torch.tensor(np.stack([y.sum(0), np.zeros(d)])),
+        torch.tensor(np.stack([y.T @ y, np.zeros((d, d))])), kappa0=kappa0, nu0=nu0, psi0=torch.tensor(psi0),
+    )  # fmt: skip
+    assert float(t[0]) == pytest.approx(ref0, rel=1e-12) and float(t[1]) == 0.0
+
+
+# ---------------------------------------------------------------------------------------------- ddCRP sampler
+def _partition_key(labels: np.ndarray) -> tuple[int, ...]:
+    first: dict[int, int] = {}
+    return tuple(first.setdefault(int(v), len(first)) for v in labels)
+
+
+def test_ddcrp_gibbs_matches_exact_posterior_by_enumeration() -> None:
+    """Partition frequencies of a long chain equal the posterior from enumerating all M^M link graphs."""
+    rng = np.random.default_rng(1)
+    M, d = 4, 2
+    y = rng.normal(size=(M, d))
+    y[:2] += 1.5
+    W = rng.uniform(0.1, 1.0, size=(M, M))
+    np.fill_diagonal(W, 0.4)
+    W[0, 3] = 0.0  # a forbidden link (opposite velocities)
+    prior = NIWPrior(np.zeros(d), 1.0, d + 2.0, 0.5 * np.eye(d))
+    lm = _LogMarginal(prior, 2 * M)
+    feats = _flat_features(y)
+    exact: Counter[tuple[int, ...]] = Counter()
+    for links in itertools.product(range(M), repeat=M):
+        w = math.prod(W[i, links[i]] for i in range(M))
+        if w == 0:
+            continue
+        _, lab = connected_components(coo_matrix((np.ones(M), (np.arange(M), links)), shape=(M, M)), directed=False)
+        loglik = sum(lm(feats[lab == k].sum(0).tolist()) for k in range(lab.max() + 1))
+        exact[_partition_key(lab)] += w * math.exp(loglik)
+    total = sum(exact.values())
+    trace: list[np.ndarray] = []
+    _ddcrp_gibbs(y, W, prior, 8000, torch.Generator().manual_seed(0), trace=trace)
+    empirical = Counter(_partition_key(t) for t in trace)
+    keys = set(exact) | set(empirical)
+    tv = 0.5 * sum(abs(exact[k] / total - empirical[k] / len(trace)) for k in keys)
+    assert len(exact) > 5
+    assert tv < 0.03, tv
+
+
+def test_prior_weights() -> None:
+    x = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 2.0]], dtype=F64)
+    v = torch.tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 3.0]], dtype=F64)
+    W = prior_weights(x, v, 2.0, 0.3)
+    assert W[0, 0] == 0.3 and W[0, 1] == 0.0  # opposite velocities cannot link
+    assert float(W[0, 2]) == pytest.approx(math.exp(-1.0) * 1.0)
+    assert float(W[1, 2]) == pytest.approx(math.exp(-math.sqrt(5) / 2))
+
+
+# ---------------------------------------------------------------------------------------------- recovery
+def test_pcgmm_recovers_three_linear_regimes() -> None:
+    ks, aris = [], []
+    for seed in range(5):
+        g = torch.Generator().manual_seed(100 + seed)
+        x, x_dot, lab = z_field(150, g)
+        res = pcgmm_labels(x, x_dot, generator=g)
+        ks.append(int(res.labels.max()) + 1)
+        aris.append(adjusted_rand_index(res.labels, lab))
+    assert sum(k == 3 for k in ks) >= 3, ks
+    assert float(np.median(aris)) > 0.85, aris
+
+
+def test_damm_recovers_three_linear_regimes() -> None:
+    ks, aris = [], []
+    for seed in range(5):
+        g = torch.Generator().manual_seed(200 + seed)
+        x, x_dot, lab = z_field(200, g)
+        res = damm_labels(x, x_dot, generator=g)
+        ks.append(int(res.labels.max()) + 1)
+        aris.append(adjusted_rand_index(res.labels, lab))
+    assert sum(k == 3 for k in ks) >= 4, ks
+    assert min(aris) > 0.8 and float(np.median(aris)) > 0.95, aris
+
+
+def test_damm_keeps_a_single_gaussian_regime_whole() -> None:
+    """Split/merge must not over-split: one elongated Gaussian moving in one direction is one component."""
+    for seed in range(3):
+        g = torch.Generator().manual_seed(300 + seed)
+        x = torch.randn(400, 2, generator=g, dtype=F64) * torch.tensor([3.0, 1.0], dtype=F64)
+        x_dot = torch.tensor([1.0, 0.0], dtype=F64) + 0.1 * torch.randn(400, 2, generator=g, dtype=F64)
+        res = damm_labels(x, x_dot, generator=g)
+        assert int(res.labels.max()) + 1 == 1
+        assert res.n_components[-1] == 1
+
+
+def test_position_only_bic_is_not_enough_on_the_field() -> None:
+    """Sanity of the benchmark field: velocities carry information that positions alone do not."""
+    from lfd_torch.gmm import fit_em_bic
+
+    g = torch.Generator().manual_seed(100)
+    x, x_dot, lab = z_field(150, g)
+    em = fit_em_bic(x, k_range=range(1, 9), generator=g)
+    damm = fit_damm(x, x_dot, generator=g)
+    ari_em = adjusted_rand_index(em.posterior(x).argmax(-1), lab)
+    ari_damm = adjusted_rand_index(damm.posterior(x).argmax(-1), lab)
+    assert ari_damm > ari_em
+
+
+@pytest.mark.parametrize("fit", [fit_pcgmm, fit_damm])
+def test_fit_is_reproducible_and_returns_a_valid_gmm(fit) -> None:  # type: ignore[no-untyped-def]
+    x, x_dot, _ = z_field(80, torch.Generator().manual_seed(5))
+    a = fit(x, x_dot, generator=torch.Generator().manual_seed(11))
+    b = fit(x, x_dot, generator=torch.Generator().manual_seed(11))
+    assert isinstance(a, GMM) and a.dtype == F64 and a.dim == 2
+    for k in ("weights", "means", "covariances"):
+        assert torch.equal(a.state_dict()[k], b.state_dict()[k])
+    # float32 input: same dtype out
+    c = fit(x.float(), x_dot.float(), generator=torch.Generator().manual_seed(11))
+    assert c.dtype == torch.float32
+
+
+def test_pcgmm_coarsening_labels_every_sample() -> None:
+    x, x_dot, lab = z_field(200, torch.Generator().manual_seed(6))
+    res = pcgmm_labels(x, x_dot, generator=torch.Generator().manual_seed(0), max_points=150)
+    assert res.labels.shape == (600,)
+    assert res.sample_index.numel() == 150
+    assert res.log_posterior.shape == (20,) and torch.isfinite(res.log_posterior).all()
+    full = pcgmm_labels(x[::4], x_dot[::4], generator=torch.Generator().manual_seed(0), max_points=None, n_iter=3)
+    assert full.sample_index.numel() == 150
+
+
+def test_small_clusters_are_merged() -> None:
+    x, x_dot, _ = z_field(100, torch.Generator().manual_seed(7))
+    res = damm_labels(x, x_dot, generator=torch.Generator().manual_seed(0), min_cluster_size=60)
+    counts = torch.bincount(res.labels)
+    assert (counts >= 60).all()
+
+
+# ---------------------------------------------------------------------------------------------- bad input
+@pytest.mark.parametrize("fit", [fit_pcgmm, fit_damm])
+def test_bad_input_raises_typed_errors(fit, generator: torch.Generator) -> None:  # type: ignore[no-untyped-def]
+    x, x_dot, _ = z_field(20, generator)
+    nan_x = x.clone()
+    nan_x[3, 1] = float("nan")
+    with pytest.raises(NonFiniteError):
+        fit(nan_x, x_dot, generator=generator)
+    inf_v = x_dot.clone()
+    inf_v[0, 0] = float("inf")
+    with pytest.raises(NonFiniteError):
+        fit(x, inf_v, generator=generator)
+    with pytest.raises(ShapeMismatchError):
+        fit(x, x_dot[:-1], generator=generator)
+    with pytest.raises(ShapeMismatchError):
+        fit(x, x_dot.float(), generator=generator)
+    with pytest.raises(TooFewSamplesError):
+        fit(x[:2], x_dot[:2], generator=generator)
+    with pytest.raises(InvalidGMMError):
+        fit(x, x_dot, generator=generator, alpha=0.0)
+    with pytest.raises(InvalidGMMError):
+        fit(x, x_dot, generator=generator, n_iter=0)
+
+
+def test_damm_needs_two_dimensions(generator: torch.Generator) -> None:
+    x = torch.randn(20, 1, generator=generator, dtype=F64)
+    with pytest.raises(InvalidGMMError):
+        fit_damm(x, x.clone(), generator=generator)
+
+
+def test_pcgmm_invalid_length_scale(generator: torch.Generator) -> None:
+    x, x_dot, _ = z_field(20, generator)
+    with pytest.raises(InvalidGMMError):
+        fit_pcgmm(x, x_dot, generator=generator, length_scale=-1.0)
+
+
+# ---------------------------------------------------------------------------------------------- DAMM kernels
+def test_sample_gamma_moments(generator: torch.Generator) -> None:
+    shape = torch.tensor([0.3, 1.0, 2.5, 40.0, 500.0], dtype=F64).repeat(40_000, 1)
+    g = sample_gamma(shape, generator=generator)
+    a = shape[0]
+    assert (g > 0).all()
+    torch.testing.assert_close(g.mean(0), a, rtol=0.02, atol=0.01)
+    torch.testing.assert_close(g.var(0), a, rtol=0.05, atol=0.01)
+
+
+@pytest.mark.parametrize("d", [2, 3, 4])
+def test_vmf_normaliser_integrates_to_one(d: int) -> None:
+    for kappa in (0.0, 0.5, 7.0, 60.0):
+        log_c = float(vmf_log_normalizer(torch.tensor([kappa], dtype=F64), d)[0])
+        # integral over the sphere of exp(kappa cos theta): area(S^{d-2}) * int_0^pi exp(k cos t) sin^{d-2} t dt
+        area = 2 * math.pi ** ((d - 1) / 2) / math.gamma((d - 1) / 2)
+        def integrand(t: float, kappa: float = kappa) -> float:
+            return math.exp(kappa * (math.cos(t) - 1)) * math.sin(t) ** (d - 2)
+
+        val, _ = scipy.integrate.quad(integrand, 0, math.pi)
+        assert log_c + math.log(area * val) + kappa == pytest.approx(0.0, abs=1e-8)
+
+
+@requires_cuda
+def test_damm_and_pcgmm_accept_cuda_tensors() -> None:
+    x, x_dot, _ = z_field(60, torch.Generator().manual_seed(8))
+    g = torch.Generator(device="cuda").manual_seed(0)
+    for fit in (fit_damm, fit_pcgmm):
+        gmm = fit(x.cuda(), x_dot.cuda(), generator=g)
+        assert gmm.device.type == "cuda"
+        assert torch.isfinite(gmm.log_prob(x.cuda())).all()
