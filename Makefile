@@ -2,6 +2,9 @@
 # Both create .venv on first use and install torch==2.13.0 (CPU wheel) BEFORE the package,
 # so that no dependency pulls a CUDA build of torch.
 PY ?= python3
+# The CPU wheel of torch. On this project's machines pip finds it on disk; elsewhere, set
+# TORCH_INDEX=--index-url=https://download.pytorch.org/whl/cpu or plain PyPI may give a multi-GB CUDA build.
+TORCH_INDEX ?=
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
@@ -17,7 +20,7 @@ setup: $(STAMP)
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet torch==2.13.0
+	$(BIN)/python -m pip install --quiet $(TORCH_INDEX) torch==2.13.0
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 

@@ -23,6 +23,7 @@ import hydra
 import pandas as pd
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
@@ -47,7 +48,7 @@ def demo_statistics(raw: Demos, preprocess: Preprocess) -> pd.DataFrame:
     out = preprocess(raw)
     reference = dataclasses.replace(preprocess, smoothing="none", window=1)(raw)
     xa, xb, va, vb, lengths = _common(out, reference)
-    mask = torch.arange(xa.shape[1]).unsqueeze(0) < lengths.unsqueeze(1)
+    mask = torch.arange(xa.shape[1], device=lengths.device).unsqueeze(0) < lengths.unsqueeze(1)
     step = (out.positions[:, 1:] - out.positions[:, :-1]).norm(dim=-1) * out.mask[:, 1:]
     speed = out.velocities.norm(dim=-1) * out.mask
     stats = {
@@ -64,6 +65,16 @@ def demo_statistics(raw: Demos, preprocess: Preprocess) -> pd.DataFrame:
     return pd.DataFrame({k: v.detach().cpu().numpy() for k, v in stats.items()})
 
 
+def method_name(preprocess: Preprocess) -> str:
+    """A name that tells regularizations apart: smoothing and window, then every other non-default setting."""
+    parts = [f"{preprocess.smoothing}-w{preprocess.window}"]
+    for field in dataclasses.fields(preprocess):
+        value = getattr(preprocess, field.name)
+        if field.name not in ("smoothing", "window") and value != field.default:
+            parts.append(f"{field.name}={value}")
+    return ",".join(parts)
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Tabulate statistics for ``cfg.shapes``; returns the table and the paths written."""
     if not isinstance(cfg.seed, int):
@@ -71,7 +82,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     torch.manual_seed(cfg.seed)  # nothing here is random; kept so every job seeds the same way
     shapes = list(LASA_NAMES) if cfg.shapes == "all" else list(cfg.shapes)
     preprocess: Preprocess = instantiate(cfg.preprocess)
-    method = f"{preprocess.smoothing}-w{preprocess.window}"
+    method = method_name(preprocess)
+    multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    if cfg.publish and multirun:
+        raise ValueError("publish=true in a multirun would let every job overwrite the published table; "
+                         "merge the sweep with `python -m lfd_torch.store.collect` instead")
     frames = []
     t0 = time.perf_counter()
     for shape in shapes:
@@ -79,7 +94,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         table = demo_statistics(raw, preprocess)
         table.insert(0, "trajectory", range(len(table)))
         table.insert(0, "seed", cfg.seed)
-        table.insert(0, "fold", "all")
+        table.insert(0, "fold", 0)  # every demonstration, no train/test split
         table.insert(0, "method", method)
         table.insert(0, "shape", shape)
         table.insert(0, "experiment", cfg.experiment)

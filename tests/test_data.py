@@ -160,3 +160,14 @@ def test_padded_constructor_validates(generator):
         demos.replace(times=demos.times[:, :5])
     with pytest.raises(ShapeMismatchError):
         demos.replace(velocities=demos.velocities.float())
+
+
+def test_padding_is_canonical_whatever_the_caller_passes(generator):
+    demos = Demos.from_sequences(ragged(generator), dt=0.5)
+    junk = demos.replace(
+        positions=demos.positions.masked_fill(~demos.mask.unsqueeze(-1), 7.0),
+        velocities=demos.velocities.masked_fill(~demos.mask.unsqueeze(-1), 3.0),
+        times=demos.times.masked_fill(~demos.mask, 0.0),
+    )
+    for name in ("positions", "velocities", "times"):
+        assert torch.equal(getattr(junk, name), getattr(demos, name)), name

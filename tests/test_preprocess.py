@@ -8,7 +8,7 @@ import scipy.signal
 import torch
 
 from lfd_torch.data import Demos, load_lasa
-from lfd_torch.errors import TooFewSamplesError
+from lfd_torch.errors import InvalidArgumentError, TooFewSamplesError, UnknownNameError
 from lfd_torch.preprocess import (
     Preprocess,
     dimension_shares,
@@ -83,11 +83,11 @@ def test_savgol_smooths_noise_and_keeps_lines(generator):
 
 
 def test_smoothing_rejects_bad_windows(demos):
-    with pytest.raises(ValueError):
+    with pytest.raises(InvalidArgumentError):
         moving_average(demos, 4)
     with pytest.raises(TooFewSamplesError):
         moving_average(demos, 31)  # shortest demonstration has 25 samples
-    with pytest.raises(ValueError):
+    with pytest.raises(InvalidArgumentError):
         savitzky_golay(demos, 5, polyorder=5)
 
 
@@ -151,5 +151,5 @@ def test_pipeline_runs_on_lasa_and_is_pure():
     assert torch.equal(before, demos.positions)
     assert out.lengths.tolist() == [151] * 7
     assert (out.end_points - demos.end_points).abs().max() < 1e-9
-    with pytest.raises(ValueError):
+    with pytest.raises(UnknownNameError):
         Preprocess(smoothing="gaussian")

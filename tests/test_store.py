@@ -377,6 +377,17 @@ def _fake_sweep(root: Path) -> tuple[Path, pd.DataFrame]:
     return sweep, expected
 
 
+def test_collect_refuses_keys_shared_by_different_configurations(tmp_path: Path) -> None:
+    # A sweep over a setting that is not part of the key (e.g. a window size missing from the method name):
+    # the two jobs are different runs, not re-writes, and dropping one silently would lose half the sweep.
+    sweep = tmp_path / "sweep"
+    write_table(_rows(seed=0), sweep / "0" / "results.parquet", manifest=_manifest(0, {"seed": 0, "window": 5}))
+    write_table(_rows(seed=0, offset=1.0), sweep / "1" / "results.parquet",
+                manifest=_manifest(0, {"seed": 0, "window": 15}))  # fmt: skip
+    with pytest.raises(StoreError, match="different configurations"):
+        collect(sweep)
+
+
 def test_collect_merges_a_half_finished_sweep(tmp_path: Path) -> None:
     sweep, expected = _fake_sweep(tmp_path)
     with pytest.warns(PartialSweepWarning) as record:

@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from lfd_torch.data.finite_difference import finite_difference
+from lfd_torch.utils import resolve_device, resolve_dtype
 from lfd_torch.errors import (
     NonFiniteError,
     NonIncreasingTimeError,
@@ -72,6 +73,24 @@ class Demos:
         object.__setattr__(self, "names", tuple(self.names))
         object.__setattr__(self, "lengths", self.lengths.to(dtype=torch.long, device=self.positions.device))
         self._validate()
+        self._canonicalize_padding()
+
+    def _canonicalize_padding(self) -> None:
+        """Edge-pad positions and times, zero-pad velocities, whatever the caller put in the padding.
+
+        Kernels rely on it: e.g. interpolation searches the padded time grid, which must be non-decreasing.
+        """
+        if bool((self.lengths == self.max_length).all()):
+            return
+        rows = torch.arange(self.n_demos, device=self.device)
+        last = self.lengths - 1
+        mask = self.mask
+        object.__setattr__(self, "times", torch.where(mask, self.times, self.times[rows, last].unsqueeze(1)))
+        m3 = mask.unsqueeze(-1)
+        object.__setattr__(
+            self, "positions", torch.where(m3, self.positions, self.positions[rows, last].unsqueeze(1))
+        )
+        object.__setattr__(self, "velocities", torch.where(m3, self.velocities, torch.zeros_like(self.velocities)))
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -267,9 +286,9 @@ class Demos:
         """A copy with some fields replaced; validated again."""
         return dataclasses.replace(self, **changes)
 
-    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> Demos:
-        """Cast floating tensors to ``dtype`` and move everything to ``device``."""
-        f = dict(dtype=dtype or self.dtype, device=device or self.device)
+    def to(self, dtype: torch.dtype | str | None = None, device: torch.device | str | None = None) -> Demos:
+        """Cast floating tensors to ``dtype`` and move everything to ``device`` (names accepted)."""
+        f = dict(dtype=resolve_dtype(dtype) or self.dtype, device=resolve_device(device) or self.device)
         return Demos(
             self.positions.to(**f),
             self.velocities.to(**f),

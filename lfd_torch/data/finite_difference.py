@@ -9,6 +9,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from lfd_torch.errors import TooFewSamplesError, UnknownNameError
+
 __all__ = ["finite_difference", "SCHEMES"]
 
 SCHEMES = ("central", "forward", "backward")
@@ -30,10 +32,10 @@ def finite_difference(positions: Tensor, times: Tensor, lengths: Tensor, scheme:
         (B, T, d) velocities in position units per time unit, zero on padding.
     """
     if scheme not in SCHEMES:
-        raise ValueError(f"unknown finite-difference scheme {scheme!r}; valid: {', '.join(SCHEMES)}")
+        raise UnknownNameError("finite-difference scheme", scheme, SCHEMES)
     B, T, d = positions.shape
     if T < 2:
-        raise ValueError("finite differences need at least 2 samples")
+        raise TooFewSamplesError("finite differences need at least 2 samples")
     lengths = lengths.to(device=positions.device)
     t = times.to(positions.dtype)
     dx = positions[:, 1:] - positions[:, :-1]  # (B, T-1, d)

@@ -17,6 +17,7 @@ import torch
 
 from lfd_torch.data.demos import Demos
 from lfd_torch.errors import StoreError, UnknownNameError
+from lfd_torch.utils import resolve_device, resolve_dtype
 
 __all__ = ["LASA_NAMES", "LASA_SINGLE_NAMES", "LASA_MULTI_NAMES", "load_lasa", "lasa_data_dir"]
 
@@ -58,12 +59,13 @@ def _read_mat(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def load_lasa(
     shape: str,
     *,
-    dtype: torch.dtype = torch.float64,
+    dtype: torch.dtype | str = torch.float64,
     device: torch.device | str | None = None,
 ) -> Demos:
     """Load one LASA motion as :class:`Demos`: 7 demonstrations x 1000 samples x 2-D, attractor (0, 0).
 
-    Positions in mm, times in s, velocities in mm/s as shipped with the data set.
+    Positions in mm, times in s, velocities in mm/s as shipped with the data set. ``dtype`` and ``device`` may be
+    given by name (``"float32"``, ``"cuda"``, ``"auto"``), as in ``conf/data/lasa.yaml``.
 
     Raises:
         UnknownNameError: ``shape`` is not one of :data:`LASA_NAMES` (the message lists them).
@@ -77,6 +79,6 @@ def load_lasa(
         velocities=list(vel),
         attractor=np.zeros(pos.shape[-1]),
         names=[f"{shape}/{i}" for i in range(pos.shape[0])],
-        dtype=dtype,
-        device=device,
+        dtype=resolve_dtype(dtype),
+        device=resolve_device(device),
     )

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from lfd_torch.data.demos import Demos
+from lfd_torch.errors import InvalidArgumentError, UnknownNameError
 from lfd_torch.preprocess.regularize import (
     estimate_velocities,
     resample,
@@ -49,11 +50,11 @@ class Preprocess:
 
     def __post_init__(self) -> None:
         if self.smoothing not in ("savgol", "moving_average", "none"):
-            raise ValueError(f"unknown smoothing {self.smoothing!r}; valid: savgol, moving_average, none")
+            raise UnknownNameError("smoothing", self.smoothing, ("savgol", "moving_average", "none"))
         if self.velocity_scheme not in ("central", "forward", "backward", "given"):
-            raise ValueError(f"unknown velocity_scheme {self.velocity_scheme!r}")
+            raise UnknownNameError("velocity_scheme", self.velocity_scheme, ("central", "forward", "backward", "given"))
         if (self.trim_position_tol is None) != (self.trim_velocity_tol is None):
-            raise ValueError("set both trim_position_tol and trim_velocity_tol, or neither")
+            raise InvalidArgumentError("set both trim_position_tol and trim_velocity_tol, or neither")
 
     def __call__(self, demos: Demos) -> Demos:
         changed = False
@@ -64,7 +65,7 @@ class Preprocess:
         if self.velocity_scheme != "given":
             demos = estimate_velocities(demos, self.velocity_scheme)
         elif changed:
-            raise ValueError("velocity_scheme='given' cannot be used after resampling or smoothing")
+            raise InvalidArgumentError("velocity_scheme='given' cannot be used after resampling or smoothing")
         if self.trim_position_tol is not None:
             demos = trim_still_tail(demos, self.trim_position_tol, self.trim_velocity_tol)
         if self.screen_threshold is not None:

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from lfd_torch.data.demos import MIN_SAMPLES, Demos
 from lfd_torch.data.finite_difference import finite_difference
-from lfd_torch.errors import TooFewSamplesError
+from lfd_torch.errors import InvalidArgumentError, TooFewSamplesError, UnknownNameError
 
 __all__ = [
     "moving_average",
@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 
 def _check_window(window: int, demos: Demos) -> None:
     if window < 1 or window % 2 == 0:
-        raise ValueError(f"window must be a positive odd number of samples, got {window}")
+        raise InvalidArgumentError(f"window must be a positive odd number of samples, got {window}")
     if window > int(demos.lengths.min()):
         i = int(torch.argmin(demos.lengths))
         raise TooFewSamplesError(f"has {int(demos.lengths[i])} samples, fewer than the window {window}", i)
@@ -95,7 +95,7 @@ def savitzky_golay(demos: Demos, window: int, polyorder: int = 3, *, recompute_v
     """
     _check_window(window, demos)
     if polyorder >= window:
-        raise ValueError(f"polyorder ({polyorder}) must be smaller than window ({window})")
+        raise InvalidArgumentError(f"polyorder ({polyorder}) must be smaller than window ({window})")
     if window == 1:
         return demos
     kernel = torch.as_tensor(scipy.signal.savgol_coeffs(window, polyorder), dtype=torch.float64)
@@ -108,7 +108,7 @@ def smooth(demos: Demos, window: int, method: str = "savgol", polyorder: int = 3
         return savitzky_golay(demos, window, polyorder)
     if method == "moving_average":
         return moving_average(demos, window)
-    raise ValueError(f"unknown smoothing method {method!r}; valid: savgol, moving_average")
+    raise UnknownNameError("smoothing method", method, ("savgol", "moving_average"))
 
 
 def _edge_pad(values: Tensor, lengths: Tensor) -> Tensor:
@@ -174,7 +174,7 @@ def resample(demos: Demos, n_samples: int, mode: str = "time") -> Demos:
             i = int(torch.nonzero(grid[rows, demos.lengths - 1] <= 0)[0])
             raise TooFewSamplesError("has zero path length; cannot resample by arc length", i)
     else:
-        raise ValueError(f"unknown resampling mode {mode!r}; valid: time, arc_length")
+        raise UnknownNameError("resampling mode", mode, ("time", "arc_length"))
     start, end = grid[:, :1], grid[rows, demos.lengths - 1].unsqueeze(1)
     query = start + u * (end - start)
     stacked = torch.cat([demos.positions, demos.times.unsqueeze(-1)], -1)
@@ -191,7 +191,7 @@ def subsample(demos: Demos, step: int) -> Demos:
     Velocities are taken from the input at the kept samples (not re-estimated).
     """
     if step < 1:
-        raise ValueError(f"step must be >= 1, got {step}")
+        raise InvalidArgumentError(f"step must be >= 1, got {step}")
     if step == 1:
         return demos
     L = demos.lengths
@@ -231,7 +231,7 @@ def screen_dimensions(
     At least one dimension is always kept (the one with the largest variance).
     """
     if not 0 <= threshold < 1:
-        raise ValueError(f"threshold must lie in [0, 1), got {threshold}")
+        raise InvalidArgumentError(f"threshold must lie in [0, 1), got {threshold}")
     shares = dimension_shares(demos)
     keep = shares >= threshold
     keep[torch.argmax(shares)] = True
@@ -269,7 +269,7 @@ def trim_still_tail(demos: Demos, position_tol: float, velocity_tol: float) -> D
     Units: those of the data (LASA: mm and mm/s).
     """
     if position_tol < 0 or velocity_tol < 0:
-        raise ValueError("tolerances must be non-negative")
+        raise InvalidArgumentError("tolerances must be non-negative")
     dist = (demos.positions - demos.attractor).norm(dim=-1)
     speed = demos.velocities.norm(dim=-1)
     moving = ~((dist <= position_tol) & (speed <= velocity_tol)) & demos.mask

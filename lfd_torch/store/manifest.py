@@ -33,7 +33,8 @@ from lfd_torch.errors import StoreError
 __all__ = ["config_hash", "canonical_json", "git_sha", "run_manifest", "MANIFEST_FIELDS", "DEFAULT_HASH_EXCLUDE"]
 
 #: Top-level configuration keys that :func:`config_hash` leaves out unless told otherwise.
-DEFAULT_HASH_EXCLUDE: tuple[str, ...] = ("seed", "hydra")
+# Top-level keys that say where results go or which seed runs, not what is computed.
+DEFAULT_HASH_EXCLUDE: tuple[str, ...] = ("seed", "hydra", "paths", "out_dir", "publish")
 
 #: Keys of the dictionary returned by :func:`run_manifest`.
 MANIFEST_FIELDS: tuple[str, ...] = (

@@ -11,7 +11,9 @@ A Hydra multirun leaves one ``results.parquet`` per job (``multirun/<date>/<time
 * rows whose key (:data:`~lfd_torch.store.KEY_COLUMNS`) appears in several parts with different values are
   resolved by keeping the **most recent write**: the part with the latest ``lfd_torch.written_at_ns``
   metadata (the file's mtime for tables written by other tools), ties broken by the later path in sorted
-  order. A warning says how many keys were resolved this way;
+  order. A warning says how many keys were resolved this way. This applies to re-runs of one configuration
+  (same ``config_hash``); a key written by parts with *different* configurations means a swept setting is
+  missing from the key, and raises :class:`~lfd_torch.errors.StoreError` instead of silently dropping a run;
 * the result is sorted by the key columns, columns in order: keys, then every other column in order of
   first appearance over the parts in sorted path order. The same files give the same table.
 """
@@ -138,6 +140,16 @@ def collect(
     except TypeError as exc:  # unhashable cells, e.g. arrays stored in a column
         raise StoreError(f"cannot merge tables with non-scalar cells: {exc}") from exc
     conflicts = merged.duplicated(subset=list(KEY_COLUMNS), keep="last")
+    if conflicts.any() and "config_hash" in merged.columns:
+        clashing = merged[merged.duplicated(subset=list(KEY_COLUMNS), keep=False)]
+        n_configs = clashing.groupby(list(KEY_COLUMNS), dropna=False)["config_hash"].nunique()
+        if (n_configs > 1).any():
+            example = n_configs[n_configs > 1].index[0]
+            raise StoreError(
+                f"{int((n_configs > 1).sum())} key(s) come from parts with different configurations (config_hash), "
+                f"e.g. {dict(zip(KEY_COLUMNS, example))}: a swept setting is missing from the key; put it in "
+                "the method name (or another key column) so the runs stay distinct"
+            )
     if conflicts.any():
         n_keys = merged.loc[conflicts, list(KEY_COLUMNS)].drop_duplicates().shape[0]
         warnings.warn(
