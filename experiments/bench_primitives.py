@@ -1,0 +1,127 @@
+"""Benchmark of the stable primitives (not a test; prints medians and checks the goals).
+
+    python experiments/bench_primitives.py [--seeds 5] [--shapes Sshape Snake ...] [--out results/tables/bench.parquet]
+
+Split (as in the LPV-DS CoRL 2018 evaluation): LASA demonstrations 0-3 for training, every 2nd sample (about 2,000
+points), demonstrations 4-6 for testing. For each shape and seed:
+
+* LPV-DS (P-QLF) with PC-GMM and with DAMM (when :func:`lfd_torch.gmm.fit_damm` exists): total learning time
+  (clustering + P step + A step, wall clock, one thread);
+* SEDS (MSE objective, K by BIC over 2..10): total learning time (EM initialisation + L-BFGS);
+* test E1 (mean velocity error, mm/s), RMSE (mm/s) and E2 (mean |1 - cos|) on demonstrations 4-6.
+
+Goals: LPV-DS <= 2 s per shape with PC-GMM and <= 0.5 s with DAMM; SEDS <= 15 s; LPV-DS (P-QLF) test RMSE and E2 no
+worse than SEDS on at least 5 of the 6 shapes (compared on the medians over seeds).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse
+import functools
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import pandas as pd
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from lasa_primitives import derive_seed, subsample  # noqa: E402
+
+from lfd_torch.data import Demos, load_lasa  # noqa: E402
+from lfd_torch.ds import StablePrimitive, fit_lpvds, fit_seds  # noqa: E402
+from lfd_torch.gmm import fit_pcgmm  # noqa: E402
+from lfd_torch.metrics import cosine_dissimilarity, velocity_error  # noqa: E402
+
+SHAPES = ("Sshape", "Snake", "CShape", "NShape", "heee", "Angle")
+
+
+def damm_fitter() -> Callable[..., object] | None:
+    try:
+        from lfd_torch.gmm import fit_damm  # type: ignore[attr-defined]
+    except ImportError:
+        return None
+    return fit_damm
+
+
+def test_metrics(model: StablePrimitive, test: Demos) -> dict[str, float]:
+    pred = model(test.positions)
+    m = test.mask
+    return {
+        "E1": float(velocity_error(pred, test.velocities, m).mean()),
+        "RMSE": float(velocity_error(pred, test.velocities, m, kind="rms").mean()),
+        "E2": float(cosine_dissimilarity(pred, test.velocities, m).mean()),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--shapes", nargs="+", default=list(SHAPES))
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", type=Path, default=None, help="optional Parquet/CSV file for the raw rows")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    methods: dict[str, Callable[..., StablePrimitive]] = {
+        "lpvds_pqlf_pcgmm": functools.partial(fit_lpvds, gmm=fit_pcgmm, lyapunov="pqlf"),
+        "seds": fit_seds,
+    }
+    damm = damm_fitter()
+    if damm is not None:
+        methods["lpvds_pqlf_damm"] = functools.partial(fit_lpvds, gmm=damm, lyapunov="pqlf")
+    else:
+        print("[bench] lfd_torch.gmm.fit_damm not available: the DAMM variant is not measured")
+
+    # warm-up (imports, cvxpy canonicalisation caches) so that the first timed fit is not penalised
+    warm = subsample(load_lasa("Line")[[0, 1]], 10)
+    for fit in methods.values():
+        fit(warm, generator=torch.Generator().manual_seed(0))
+
+    rows = []
+    for shape in args.shapes:
+        demos = subsample(load_lasa(shape), 2)
+        train, test = demos[[0, 1, 2, 3]], demos[[4, 5, 6]]
+        n_points = int(train.lengths.sum())
+        for seed in range(args.seeds):
+            for name, fit in methods.items():
+                generator = torch.Generator().manual_seed(derive_seed("bench_primitives", shape, name, seed))
+                t0 = time.perf_counter()
+                model = fit(train, generator=generator)
+                elapsed = time.perf_counter() - t0
+                rows.append({"shape": shape, "method": name, "seed": seed, "n_points": n_points, "time_s": elapsed,
+                             "K": model.n_components, "max_margin": model.stability_certificate().max_margin,
+                             **test_metrics(model, test)})  # fmt: skip
+            print(f"[bench] {shape} seed {seed} done", flush=True)
+    table = pd.DataFrame(rows)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        (table.to_parquet if args.out.suffix == ".parquet" else table.to_csv)(args.out)
+
+    med = table.groupby(["shape", "method"])[["time_s", "K", "E1", "RMSE", "E2", "max_margin"]].median()
+    print(med.to_string(float_format=lambda v: f"{v:.4g}"))
+    goals = {"lpvds_pqlf_pcgmm": 2.0, "lpvds_pqlf_damm": 0.5, "seds": 15.0}
+    for name, limit in goals.items():
+        if name not in methods:
+            continue
+        times = med.xs(name, level="method")["time_s"]
+        print(f"[goal] {name}: median time per shape max {times.max():.3f} s (goal <= {limit} s): "
+              f"{'met' if times.max() <= limit else 'NOT met'}")  # fmt: skip
+    for name in [m for m in methods if m.startswith("lpvds")]:
+        lp, sd = med.xs(name, level="method"), med.xs("seds", level="method")
+        better = int(((lp["RMSE"] <= sd["RMSE"]) & (lp["E2"] <= sd["E2"])).sum())
+        print(f"[goal] {name} test RMSE and E2 no worse than SEDS on {better} of {len(lp)} shapes (goal >= 5 of 6): "
+              f"{'met' if better >= min(5, len(lp)) else 'NOT met'}")  # fmt: skip
+    print(f"[bench] all {len(table)} fitted models certified: {bool((table.max_margin < 0).all())}; "
+          f"median time over all: " + ", ".join(f"{k} {statistics.median(v):.3f} s" for k, v in table.groupby('method')['time_s']))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,67 @@
+"""Solving cvxpy problems with named solvers, an ordered fallback and a checked status.
+
+Every convex program of :mod:`lfd_torch.ds` goes through :func:`solve_problem`: it tries the solvers in the
+given order (Clarabel first, SCS as fallback by default), accepts only the status ``optimal`` and raises
+:class:`~lfd_torch.errors.SolverError` listing every attempt otherwise. Callers verify the solution afterwards
+(positive definiteness, stability margins) in float64; a solver's word alone never certifies a model.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import cvxpy as cp
+
+from lfd_torch.errors import SolverError
+
+__all__ = ["DEFAULT_SOLVERS", "solve_problem", "normalize_solvers"]
+
+#: Solvers tried in order when none are named.
+DEFAULT_SOLVERS: tuple[str, ...] = ("CLARABEL", "SCS")
+
+
+def normalize_solvers(solvers: str | Sequence[str]) -> tuple[str, ...]:
+    """``"CLARABEL"`` or ``["CLARABEL", "SCS"]`` -> upper-case tuple; an empty list is an error."""
+    names = (solvers,) if isinstance(solvers, str) else tuple(solvers)
+    if not names:
+        raise SolverError("no solver named; give e.g. solvers=('CLARABEL', 'SCS')")
+    return tuple(str(n).upper() for n in names)
+
+
+def solve_problem(
+    problem: cp.Problem,
+    solvers: str | Sequence[str] = DEFAULT_SOLVERS,
+    solver_options: Mapping[str, Mapping[str, Any]] | None = None,
+    *,
+    what: str = "convex program",
+) -> str:
+    """Solve ``problem`` with the first solver that reports ``optimal``.
+
+    Args:
+        problem: a cvxpy problem (parameters already set).
+        solvers: solver names tried in order.
+        solver_options: optional ``{solver name: {option: value}}`` passed to ``problem.solve``.
+        what: name of the program in error messages.
+
+    Returns:
+        The name of the solver whose solution is in the problem's variables.
+
+    Raises:
+        SolverError: no solver reached status ``optimal`` (the message lists each attempt and its outcome).
+    """
+    options = {str(k).upper(): dict(v) for k, v in (solver_options or {}).items()}
+    attempts: list[str] = []
+    for name in normalize_solvers(solvers):
+        try:
+            with warnings.catch_warnings():  # "Solution may be inaccurate": the status is checked below
+                warnings.simplefilter("ignore", UserWarning)
+                problem.solve(solver=name, **options.get(name, {}))
+        except (cp.error.SolverError, cp.error.DCPError, ValueError, ArithmeticError) as exc:
+            attempts.append(f"{name}: {type(exc).__name__}: {exc}")
+            continue
+        if problem.status == cp.OPTIMAL:
+            return name
+        attempts.append(f"{name}: status {problem.status}")
+    raise SolverError(f"{what} not solved to optimality; " + "; ".join(attempts))

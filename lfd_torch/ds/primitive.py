@@ -1,0 +1,389 @@
+"""Common interface of the stable motion primitives: GMM-scheduled mixtures of linear dynamical systems.
+
+Both :class:`~lfd_torch.ds.lpvds.LPVDS` and :class:`~lfd_torch.ds.seds.SEDS` evaluate (paper eq. 5)
+
+    f(x) = sum_k gamma_k(x) (A_k x + b_k),   b_k = -A_k g,   i.e.   f(x) = sum_k gamma_k(x) A_k (x - g),
+
+with gamma_k(x) the posterior of a GMM on positions, and carry a quadratic Lyapunov function
+V(x) = (x - g)^T P (x - g) with A_k^T P + P A_k < 0 for every k (paper eq. 6). Since gamma_k >= 0 and
+sum_k gamma_k = 1, dV/dt = sum_k gamma_k (x - g)^T (A_k^T P + P A_k) (x - g) < 0 for x != g: g is globally
+asymptotically stable. SEDS is the special case P = I.
+
+Notation:
+    K  number of components, d state dimension
+    A                      (K, d, d)  system matrices, 1/s
+    attractor g            (d,)       data units (LASA: mm)
+    P                      (d, d)     symmetric positive definite, largest eigenvalue 1 (dimensionless)
+    velocity_covariances   (K, d, d)  per-component covariance of the velocity around A_k (x - g), (units/s)^2
+    x                      (..., d)   query positions; f(x) has the same shape (units/s)
+
+Persistence: :meth:`StablePrimitive.save` writes ``torch.save`` of a plain dict of tensors plus a JSON string of
+metadata (``schema_version``, ``kind``, ``info``) through a temporary file and ``os.replace``; :func:`load_primitive`
+reads it back with ``weights_only=True`` and re-checks the certificate.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar, NamedTuple
+
+import torch
+from torch import Tensor
+
+from lfd_torch.errors import CertificationError, NonFiniteError, ShapeMismatchError, StoreError, UnknownNameError
+from lfd_torch.gmm import GMM
+from lfd_torch.store import atomic_path
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "StabilityCertificate",
+    "StablePrimitive",
+    "load_primitive",
+    "quadratic_margins",
+    "residual_velocity_covariances",
+]
+
+#: Version of the on-disk format written by :meth:`StablePrimitive.save`.
+SCHEMA_VERSION = 1
+
+
+class StabilityCertificate(NamedTuple):
+    """Result of :meth:`StablePrimitive.stability_certificate`.
+
+    Attributes:
+        margins: (K,) float64, lambda_max(A_k^T P + P A_k) in 1/s; all < 0 for a certified primitive.
+        max_margin: the largest margin (the worst component).
+        certified: ``max_margin < 0``.
+    """
+
+    margins: Tensor
+    max_margin: float
+    certified: bool
+
+
+def quadratic_margins(A: Tensor, P: Tensor) -> Tensor:
+    """Largest eigenvalue of A_k^T P + P A_k for each k, computed in float64.
+
+    Args:
+        A: (K, d, d) system matrices.
+        P: (d, d) symmetric Lyapunov matrix.
+
+    Returns:
+        (K,) float64 tensor on the device of ``A``.
+    """
+    A64 = A.to(torch.float64)
+    P64 = P.to(dtype=torch.float64, device=A.device)
+    Q = A64.transpose(-2, -1) @ P64 + P64 @ A64
+    Q = 0.5 * (Q + Q.transpose(-2, -1))
+    return torch.linalg.eigvalsh(Q)[..., -1]
+
+
+def _to_json(info: Mapping[str, Any]) -> str:
+    try:
+        return json.dumps(dict(info), sort_keys=True)
+    except TypeError as exc:
+        raise StoreError(f"primitive info must be JSON-serialisable: {exc}") from exc
+
+
+@dataclass(frozen=True, eq=False)
+class StablePrimitive:
+    """A certified GMM-scheduled mixture of linear systems (see the module docstring for shapes and units).
+
+    Construction validates shapes, dtypes, devices and finiteness, and checks the stability certificate in
+    float64: an instance is always certified. Subclasses only set :attr:`kind` and provide ``fit``.
+
+    Attributes:
+        gmm: mixture on positions whose posterior gives gamma_k(x).
+        A: (K, d, d) system matrices.
+        attractor: (d,) goal g.
+        P: (d, d) Lyapunov matrix, symmetric positive definite.
+        velocity_covariances: (K, d, d) covariance of the velocity residual of each component (used by the
+            disturbance modulation's entropy); symmetric positive definite.
+        info: JSON-serialisable fit metadata (hyperparameters, timings, solver); not used for evaluation.
+
+    Raises:
+        ShapeMismatchError: inconsistent shapes, dtypes or devices.
+        NonFiniteError: NaN or Inf in a parameter.
+        CertificationError: P is not positive definite, or some A_k^T P + P A_k is not negative definite.
+    """
+
+    kind: ClassVar[str] = "StablePrimitive"
+
+    gmm: GMM
+    A: Tensor
+    attractor: Tensor
+    P: Tensor
+    velocity_covariances: Tensor
+    info: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        K, d = self.gmm.n_components, self.gmm.dim
+        expected = {"A": (K, d, d), "attractor": (d,), "P": (d, d), "velocity_covariances": (K, d, d)}
+        for name, shape in expected.items():
+            t = getattr(self, name)
+            if not isinstance(t, Tensor):
+                raise ShapeMismatchError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+            if tuple(t.shape) != shape:
+                raise ShapeMismatchError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
+            if t.dtype != self.gmm.dtype or t.device != self.gmm.device:
+                raise ShapeMismatchError(
+                    f"{name} is {t.dtype} on {t.device}, the GMM is {self.gmm.dtype} on {self.gmm.device}"
+                )
+            if not torch.isfinite(t).all():
+                raise NonFiniteError(f"{name} contains NaN or Inf")
+        object.__setattr__(self, "info", dict(self.info))
+        _to_json(self.info)
+        P64 = self.P.to(torch.float64)
+        if float((P64 - P64.T).abs().max()) > 1e-9 * float(P64.abs().max()):
+            raise CertificationError("P is not symmetric")
+        if float(torch.linalg.eigvalsh(P64)[0]) <= 0:
+            raise CertificationError("P is not positive definite")
+        cert = self.stability_certificate()
+        if not cert.certified:
+            raise CertificationError(
+                f"{self.kind}: lambda_max(A_k^T P + P A_k) = {cert.margins.tolist()} (1/s); all must be < 0"
+            )
+        Sv = self.velocity_covariances.to(torch.float64)
+        if not torch.allclose(Sv, Sv.transpose(-2, -1), rtol=1e-6, atol=0.0) or (
+            torch.linalg.eigvalsh(0.5 * (Sv + Sv.transpose(-2, -1)))[..., 0] <= 0
+        ).any():
+            raise ShapeMismatchError("velocity_covariances must be symmetric positive definite")
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def n_components(self) -> int:
+        """K."""
+        return self.gmm.n_components
+
+    @property
+    def dim(self) -> int:
+        """d."""
+        return self.gmm.dim
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.gmm.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.gmm.device
+
+    @property
+    def b(self) -> Tensor:
+        """(K, d) offsets b_k = -A_k g (units/s)."""
+        return -(self.A @ self.attractor)
+
+    # ------------------------------------------------------------------ evaluation
+    def _check(self, x: Tensor) -> None:
+        if not isinstance(x, Tensor) or x.ndim == 0 or x.shape[-1] != self.dim:
+            shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+            raise ShapeMismatchError(f"positions must have shape (..., {self.dim}), got {shape}")
+        if x.dtype != self.dtype or x.device != self.device:
+            raise ShapeMismatchError(
+                f"positions are {x.dtype} on {x.device}, the primitive is {self.dtype} on {self.device}; "
+                "convert one with .to(dtype=..., device=...)"
+            )
+
+    def component_velocities(self, x: Tensor) -> Tensor:
+        """Velocity of every linear component, A_k (x - g).
+
+        Args:
+            x: (..., d) positions.
+
+        Returns:
+            (..., K, d) velocities (units/s).
+        """
+        self._check(x)
+        return torch.einsum("kij,...j->...ki", self.A, x - self.attractor)
+
+    def __call__(self, x: Tensor) -> Tensor:
+        """Velocity f(x) = sum_k gamma_k(x) A_k (x - g).
+
+        Args:
+            x: (..., d) positions (any leading batch shape), same dtype/device as the primitive.
+
+        Returns:
+            (..., d) velocities (units/s).
+        """
+        velocities = self.component_velocities(x)  # validates x
+        return torch.einsum("...k,...ki->...i", self.gmm.posterior(x), velocities)
+
+    def lyapunov(self, x: Tensor) -> Tensor:
+        """V(x) = (x - g)^T P (x - g).
+
+        Args:
+            x: (..., d) positions.
+
+        Returns:
+            (...) values (units^2).
+        """
+        self._check(x)
+        e = x - self.attractor
+        return torch.einsum("...i,ij,...j->...", e, self.P, e)
+
+    def lyapunov_derivative(self, x: Tensor) -> Tensor:
+        """dV/dt along the flow, 2 (x - g)^T P f(x); negative for every x != g.
+
+        Args:
+            x: (..., d) positions.
+
+        Returns:
+            (...) values (units^2/s).
+        """
+        x_dot = self(x)  # validates x
+        return 2.0 * torch.einsum("...i,ij,...j->...", x - self.attractor, self.P, x_dot)
+
+    def stability_certificate(self) -> StabilityCertificate:
+        """Per-component margins lambda_max(A_k^T P + P A_k) in float64 and whether all are negative."""
+        margins = quadratic_margins(self.A, self.P)
+        worst = float(margins.max())
+        return StabilityCertificate(margins, worst, worst < 0.0)
+
+    # ------------------------------------------------------------------ conversion and persistence
+    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> StablePrimitive:
+        """A copy with every tensor cast to ``dtype`` and moved to ``device`` (the certificate is re-checked)."""
+        f = dict(dtype=dtype or self.dtype, device=device or self.device)
+        return dataclasses.replace(
+            self,
+            gmm=self.gmm.to(**f),
+            A=self.A.to(**f),
+            attractor=self.attractor.to(**f),
+            P=self.P.to(**f),
+            velocity_covariances=self.velocity_covariances.to(**f),
+        )
+
+    def state_dict(self) -> dict[str, Any]:
+        """Plain dict: ``schema_version`` (int), ``kind`` (str), ``info`` (JSON str) and the tensors."""
+        return {
+            "schema_version": SCHEMA_VERSION,
+            "kind": self.kind,
+            "info": _to_json(self.info),
+            "gmm": {k: v.detach().cpu() for k, v in self.gmm.state_dict().items()},
+            "A": self.A.detach().cpu(),
+            "attractor": self.attractor.detach().cpu(),
+            "P": self.P.detach().cpu(),
+            "velocity_covariances": self.velocity_covariances.detach().cpu(),
+        }
+
+    @classmethod
+    def from_state_dict(
+        cls, state: Mapping[str, Any], *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+    ) -> StablePrimitive:
+        """Inverse of :meth:`state_dict`; called on the base class it dispatches on ``kind``.
+
+        Raises:
+            StoreError: unknown ``schema_version``, missing keys, or a ``kind`` that does not match ``cls``.
+            CertificationError: the stored parameters are not certified.
+        """
+        version = state.get("schema_version")
+        if version != SCHEMA_VERSION:
+            raise StoreError(f"unsupported primitive schema_version {version!r}; this version reads {SCHEMA_VERSION}")
+        missing = {"kind", "info", "gmm", "A", "attractor", "P", "velocity_covariances"} - set(state)
+        if missing:
+            raise StoreError(f"primitive state dict lacks {sorted(missing)}")
+        kind = state["kind"]
+        target = _registry().get(kind)
+        if target is None:
+            raise UnknownNameError("primitive kind", str(kind), tuple(_registry()))
+        if cls is not StablePrimitive and target is not cls:
+            raise StoreError(f"the file holds a {kind}, not a {cls.kind}")
+        gmm = GMM.from_state_dict(dict(state["gmm"]))
+        f = dict(dtype=dtype or gmm.dtype, device=device or gmm.device)
+        return target(
+            gmm=gmm.to(**f),
+            A=state["A"].to(**f),
+            attractor=state["attractor"].to(**f),
+            P=state["P"].to(**f),
+            velocity_covariances=state["velocity_covariances"].to(**f),
+            info=json.loads(state["info"]),
+        )
+
+    def save(self, path: str | os.PathLike[str]) -> Path:
+        """Write :meth:`state_dict` with ``torch.save``, atomically (:func:`lfd_torch.store.atomic_path`: temporary
+        file in the same folder, then ``os.replace``).
+
+        Returns:
+            The path written.
+        """
+        state = self.state_dict()
+        with atomic_path(path) as tmp:
+            torch.save(state, tmp)
+        return Path(path)
+
+    @classmethod
+    def load(
+        cls, path: str | os.PathLike[str], *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+    ) -> StablePrimitive:
+        """Read a file written by :meth:`save` (``weights_only=True``); see :meth:`from_state_dict`."""
+        try:
+            state = torch.load(Path(path), map_location="cpu", weights_only=True)
+        except (OSError, RuntimeError, EOFError, ValueError) as exc:
+            raise StoreError(f"cannot read primitive file {path}: {exc}") from exc
+        if not isinstance(state, Mapping):
+            raise StoreError(f"{path} does not hold a primitive state dict")
+        return cls.from_state_dict(state, dtype=dtype, device=device)
+
+    def __repr__(self) -> str:
+        cert = self.stability_certificate()
+        return (
+            f"{self.kind}(n_components={self.n_components}, dim={self.dim}, max_margin={cert.max_margin:.3g}, "
+            f"dtype={self.dtype}, device={self.device})"
+        )
+
+
+def _registry() -> dict[str, type[StablePrimitive]]:
+    """kind -> class, for every subclass defined so far."""
+    out: dict[str, type[StablePrimitive]] = {}
+    stack = list(StablePrimitive.__subclasses__())
+    while stack:
+        c = stack.pop()
+        out[c.kind] = c
+        stack.extend(c.__subclasses__())
+    return out
+
+
+def load_primitive(
+    path: str | os.PathLike[str], *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+) -> StablePrimitive:
+    """Load any primitive saved with :meth:`StablePrimitive.save` (LPVDS or SEDS, chosen by the file's ``kind``)."""
+    import lfd_torch.ds  # noqa: F401  (registers the subclasses)
+
+    return StablePrimitive.load(path, dtype=dtype, device=device)
+
+
+def residual_velocity_covariances(
+    gamma: Tensor, x: Tensor, x_dot: Tensor, A: Tensor, attractor: Tensor, *, prior_weight: float = 1.0
+) -> Tensor:
+    """Responsibility-weighted covariance of the velocity residual x_dot - A_k (x - g) of each component.
+
+    Each covariance is shrunk towards the pooled residual covariance of the whole model with ``prior_weight``
+    pseudo-samples (plus a 1e-9 relative diagonal load), so components with little mass stay positive definite.
+
+    Args:
+        gamma: (N, K) responsibilities.
+        x: (N, d) positions.
+        x_dot: (N, d) velocities.
+        A: (K, d, d) system matrices.
+        attractor: (d,) goal.
+        prior_weight: pseudo-sample weight of the pooled covariance.
+
+    Returns:
+        (K, d, d) symmetric positive-definite covariances ((units/s)^2).
+    """
+    d = x.shape[-1]
+    e = x - attractor
+    r = x_dot.unsqueeze(-2) - torch.einsum("kij,nj->nki", A, e)  # (N, K, d)
+    outer = r.unsqueeze(-1) * r.unsqueeze(-2)  # (N, K, d, d)
+    weighted = torch.einsum("nk,nkij->kij", gamma, outer)
+    f_res = (gamma.unsqueeze(-1) * r).sum(1)  # residual of the full model, (N, d)
+    pooled = f_res.T @ f_res / x.shape[0]
+    eye = torch.eye(d, dtype=x.dtype, device=x.device)
+    scale = float((x_dot * x_dot).sum(-1).mean()) / d or 1.0
+    pooled = pooled + 1e-9 * scale * eye
+    cov = (weighted + prior_weight * pooled) / (gamma.sum(0) + prior_weight)[:, None, None]
+    return 0.5 * (cov + cov.transpose(-2, -1))

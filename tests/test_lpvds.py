@@ -1,0 +1,327 @@
+"""LPV-DS (QLF / P-QLF): exact recovery of linear systems, the moment-based A step against a per-sample
+reference program, the P step, certificates, global convergence, typed errors."""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import cvxpy as cp
+import hydra
+import numpy as np
+import pytest
+import scipy.linalg
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from lfd_torch.data import Demos
+from lfd_torch.ds import (
+    LPVDS,
+    StablePrimitive,
+    estimate_lyapunov_matrix,
+    fit_lpvds,
+    load_primitive,
+    lyapunov_violation_rate,
+    quadratic_margins,
+    solve_lpv_matrices,
+)
+from lfd_torch.errors import (
+    CertificationError,
+    NonFiniteError,
+    ShapeMismatchError,
+    SolverError,
+    TooFewSamplesError,
+    UnknownNameError,
+)
+from lfd_torch.gmm import GMM, fit_em
+from lfd_torch.rollout import rollout
+from lfd_torch.store import collect, read_table
+from test_primitive_contract import small_lasa
+
+
+def linear_demos(A: torch.Tensor, g: torch.Tensor, starts: torch.Tensor, T: int = 60, dt: float = 0.05) -> Demos:
+    """Exact trajectories of x_dot = A (x - g): x(t) = g + expm(A t) (x0 - g), velocities A (x - g)."""
+    t = torch.arange(T, dtype=torch.float64) * dt
+    E = torch.linalg.matrix_exp(A * t[:, None, None])  # (T, d, d)
+    seqs = [g + torch.einsum("tij,j->ti", E, x0 - g) for x0 in starts]
+    return Demos.from_sequences(
+        seqs, times=[t] * len(seqs), velocities=[(s - g) @ A.T for s in seqs], attractor=g
+    )
+
+
+def random_gmm(x: torch.Tensor, K: int, generator: torch.Generator) -> GMM:
+    """A GMM from a random hard partition of x (any scheduling works for a linear target)."""
+    labels = torch.randint(0, K, (x.shape[0],), generator=generator)
+    return GMM.from_labels(x, labels)
+
+
+# A Hurwitz matrix whose symmetric part is indefinite: no QLF (P = I) certifies it, a P-QLF does.
+A_NON_QLF = torch.tensor([[-1.0, 4.0], [0.0, -1.0]], dtype=torch.float64)
+A_QLF = torch.tensor([[-1.0, 1.5], [-0.5, -2.0]], dtype=torch.float64)
+G = torch.tensor([1.0, -2.0], dtype=torch.float64)
+
+
+def starts_on_circle(n: int, radius: float = 5.0) -> torch.Tensor:
+    a = torch.linspace(0, 2 * torch.pi, n + 1, dtype=torch.float64)[:-1]
+    return G + radius * torch.stack([a.cos(), a.sin()], -1)
+
+
+def test_recovers_qlf_stable_linear_system(generator: torch.Generator) -> None:
+    assert float(torch.linalg.eigvalsh(A_QLF + A_QLF.T).max()) < 0
+    demos = linear_demos(A_QLF, G, starts_on_circle(6))
+    x, x_dot, _ = demos.samples()
+    for lyapunov in ("qlf", "pqlf"):
+        model = fit_lpvds(demos, gmm=random_gmm(x, 3, generator), lyapunov=lyapunov, ridge=0.0)
+        torch.testing.assert_close(model.A, A_QLF.expand(3, 2, 2), rtol=0, atol=1e-4)
+        torch.testing.assert_close(model(x), x_dot, rtol=0, atol=1e-4 * float(x_dot.abs().max()))
+
+
+def test_recovers_linear_system_that_needs_pqlf(generator: torch.Generator) -> None:
+    assert float(torch.linalg.eigvalsh(A_NON_QLF + A_NON_QLF.T).max()) > 0
+    demos = linear_demos(A_NON_QLF, G, starts_on_circle(8))
+    x, x_dot, _ = demos.samples()
+    gmm = random_gmm(x, 2, generator)
+    # QLF cannot represent it (constraint A + A^T < 0 excludes the truth) ...
+    qlf = fit_lpvds(demos, gmm=gmm, lyapunov="qlf")
+    assert qlf.info["train_mse"] > 1e-2 * float(x_dot.pow(2).sum(-1).mean())
+    # ... a P from the Lyapunov equation A^T P + P A = -I (independent reference) recovers it exactly ...
+    P_ref = torch.from_numpy(scipy.linalg.solve_continuous_lyapunov(A_NON_QLF.T.numpy(), -np.eye(2)))
+    given_p = fit_lpvds(demos, gmm=gmm, lyapunov=P_ref, ridge=0.0)
+    torch.testing.assert_close(given_p.A, A_NON_QLF.expand(2, 2, 2), rtol=0, atol=1e-4)
+    # ... and so does the P estimated from the data.
+    pqlf = fit_lpvds(demos, gmm=gmm, lyapunov="pqlf", ridge=0.0)
+    assert lyapunov_violation_rate(x, x_dot, G, pqlf.P) == 0.0
+    torch.testing.assert_close(pqlf(x), x_dot, rtol=0, atol=1e-3 * float(x_dot.abs().max()))
+    assert pqlf.info["train_mse"] < 1e-3 * qlf.info["train_mse"]
+
+
+def test_p_step_properties() -> None:
+    demos = linear_demos(A_NON_QLF, G, starts_on_circle(8))
+    x, x_dot, _ = demos.samples()
+    P = estimate_lyapunov_matrix(x, x_dot, G)
+    assert P.shape == (2, 2) and P.dtype == torch.float64
+    torch.testing.assert_close(P, P.T, rtol=0, atol=0)
+    eig = torch.linalg.eigvalsh(P)
+    assert eig[0] > 0 and abs(float(eig[-1]) - 1.0) < 1e-12
+    assert lyapunov_violation_rate(x, x_dot, G, P) == 0.0
+    assert lyapunov_violation_rate(x, x_dot, G, torch.eye(2, dtype=torch.float64)) > 0.05
+    # The true system is certified by the estimated P (it is feasible for the A step).
+    assert float(quadratic_margins(A_NON_QLF[None], P)[0]) < 0
+    with pytest.raises(TooFewSamplesError):
+        estimate_lyapunov_matrix(G[None].expand(5, 2).clone(), torch.ones(5, 2, dtype=torch.float64), G)
+    with pytest.raises(ValueError):
+        estimate_lyapunov_matrix(x, x_dot, G, margin=1.5)
+
+
+def naive_a_step(x, x_dot, gamma, g, P, eps):
+    """Reference A step: the per-sample residual program (size grows with N), no scaling, no ridge."""
+    N, d = x.shape
+    K = gamma.shape[1]
+    A = [cp.Variable((d, d)) for _ in range(K)]
+    e = (x - g).numpy()
+    pred = sum(cp.multiply(gamma[:, k : k + 1].numpy(), e @ A[k].T) for k in range(K))
+    cons = [A[k].T @ P.numpy() + P.numpy() @ A[k] << -eps * np.eye(d) for k in range(K)]
+    cp.Problem(cp.Minimize(cp.sum_squares(x_dot.numpy() - pred) / N), cons).solve(solver="CLARABEL")
+    return torch.stack([torch.from_numpy(a.value) for a in A])
+
+
+def test_moment_a_step_matches_per_sample_program(generator: torch.Generator) -> None:
+    demos = small_lasa("CShape", stride=20)
+    x, x_dot, _ = demos.samples()
+    gmm = fit_em(x, 3, generator=generator)
+    gamma = gmm.posterior(x)
+    P = estimate_lyapunov_matrix(x, x_dot, demos.attractor)
+    A, solver = solve_lpv_matrices(x, x_dot, gamma, demos.attractor, P, eps=1e-2, ridge=0.0)
+    assert solver == "CLARABEL"
+    A_ref = naive_a_step(x, x_dot, gamma, demos.attractor, P, 1e-2)
+
+    def mse(A):
+        return float((x_dot - torch.einsum("nk,kij,nj->ni", gamma, A, x - demos.attractor)).pow(2).sum(-1).mean())
+
+    assert abs(mse(A) - mse(A_ref)) <= 1e-5 * mse(A_ref)
+    torch.testing.assert_close(A, A_ref, rtol=0, atol=1e-3 * float(A_ref.abs().max()))
+    assert (quadratic_margins(A, P) <= -1e-2 * (1 - 1e-3)).all()
+
+
+@pytest.mark.parametrize("lyapunov", ["qlf", "pqlf"])
+@pytest.mark.parametrize("shape", ["Angle", "Sshape", "Worm", "Multi_Models_3"])
+def test_fitted_models_certified_and_decreasing(shape: str, lyapunov: str, generator: torch.Generator) -> None:
+    demos = small_lasa(shape, demos=(0, 1, 2), stride=8)
+    model = fit_lpvds(demos, gmm=functools.partial(fit_em, n_components=5), lyapunov=lyapunov, generator=generator)
+    cert = model.stability_certificate()
+    assert cert.certified and (cert.margins <= -model.info["eps"] * (1 - 1e-3)).all()  # solver tolerance
+    x, _, _ = demos.samples()
+    x = x[(x - model.attractor).norm(dim=-1) > 1e-9]
+    assert (model.lyapunov_derivative(x) < 0).all()
+    if lyapunov == "qlf":
+        torch.testing.assert_close(model.P, torch.eye(2, dtype=torch.float64))
+
+
+@settings(max_examples=4, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    shape=st.sampled_from(["Angle", "CShape", "heee", "Snake", "Multi_Models_1"]),
+    seed=st.integers(0, 2**31 - 1),
+    n_components=st.integers(2, 6),
+)
+def test_random_starts_converge(shape: str, seed: int, n_components: int) -> None:
+    """200 starts in a box twice the data span all reach the attractor (P-QLF, Euler, dt = 0.01 s)."""
+    generator = torch.Generator().manual_seed(seed)
+    demos = small_lasa(shape, demos=(0, 1), stride=10)
+    model = fit_lpvds(demos, gmm=functools.partial(fit_em, n_components=n_components), generator=generator)
+    lo, hi = demos.positions.amin((0, 1)), demos.positions.amax((0, 1))
+    center, span = 0.5 * (lo + hi), hi - lo
+    x0 = center + span * (2 * torch.rand(200, 2, generator=generator, dtype=torch.float64) - 1)
+    scale = float(span.norm())
+    result = rollout(model, x0, 0.01, 20000, attractor=model.attractor, position_tol=1e-3 * scale, velocity_tol=float("inf"))
+    assert bool(result.converged.all()), f"{int((~result.converged).sum())} of 200 starts did not converge"
+    final = result.final_positions
+    assert ((final - model.attractor).norm(dim=-1) < 1e-3 * scale).all()
+
+
+def test_typed_errors(generator: torch.Generator) -> None:
+    demos = small_lasa("Angle", stride=20)
+    x, x_dot, _ = demos.samples()
+    gmm = fit_em(x, 2, generator=generator)
+    with pytest.raises(UnknownNameError):
+        fit_lpvds(demos, gmm=gmm, lyapunov="sos")
+    with pytest.raises(ShapeMismatchError):
+        fit_lpvds(demos, gmm=GMM.from_labels(torch.cat([x, x], -1), torch.zeros(len(x), dtype=torch.long)))
+    with pytest.raises(ShapeMismatchError):
+        fit_lpvds(demos, attractor=torch.zeros(3), gmm=gmm)
+    with pytest.raises(ValueError):
+        fit_lpvds(demos, gmm=functools.partial(fit_em, n_components=2))  # a fitter needs a generator
+    with pytest.raises(CertificationError):
+        fit_lpvds(demos, gmm=gmm, lyapunov=torch.tensor([[1.0, 0.0], [0.0, -1.0]], dtype=torch.float64))
+    with pytest.raises(ValueError):
+        fit_lpvds(demos, gmm=gmm, eps=0.0)
+    bad = x.clone()
+    bad[3, 0] = float("nan")
+    with pytest.raises(NonFiniteError):
+        solve_lpv_matrices(bad, x_dot, gmm.posterior(x), demos.attractor, torch.eye(2, dtype=torch.float64))
+
+
+def test_solver_failure_and_fallback(generator: torch.Generator) -> None:
+    demos = small_lasa("Angle", stride=20)
+    x, _, _ = demos.samples()
+    gmm = fit_em(x, 3, generator=generator)
+    # A solver stopped after one iteration is not optimal: typed error, no model.
+    with pytest.raises(SolverError, match="CLARABEL"):
+        fit_lpvds(demos, gmm=gmm, solvers=["CLARABEL"], solver_options={"CLARABEL": {"max_iter": 1}})
+    with pytest.raises(SolverError, match="NOT_A_SOLVER"):
+        fit_lpvds(demos, gmm=gmm, solvers=["NOT_A_SOLVER"])
+    # The fallback solver is used when the first one fails; the result is still verified.
+    model = fit_lpvds(demos, gmm=gmm, solvers=["NOT_A_SOLVER", "SCS"], solver_options={"SCS": {"eps": 1e-8}})
+    assert model.info["solver"] == "SCS" and model.stability_certificate().certified
+
+
+def test_uncertified_solution_is_never_returned(monkeypatch: pytest.MonkeyPatch, generator: torch.Generator) -> None:
+    import lfd_torch.ds.lpvds as lpvds_module
+
+    demos = small_lasa("Angle", stride=20)
+    x, _, _ = demos.samples()
+    gmm = fit_em(x, 2, generator=generator)
+
+    def unstable(*args, **kwargs):
+        return 0.1 * torch.eye(2, dtype=torch.float64).expand(2, 2, 2).clone(), "FAKE"
+
+    monkeypatch.setattr(lpvds_module, "solve_lpv_matrices", unstable)
+    with pytest.raises(CertificationError, match="FAKE"):
+        fit_lpvds(demos, gmm=gmm)
+
+    def marginal(*args, **kwargs):  # lambda_max exactly 0: not strictly negative
+        return torch.tensor([[0.0, 1.0], [-1.0, 0.0]], dtype=torch.float64).expand(2, 2, 2).clone(), "FAKE"
+
+    monkeypatch.setattr(lpvds_module, "solve_lpv_matrices", marginal)
+    with pytest.raises(CertificationError):
+        fit_lpvds(demos, gmm=gmm, lyapunov="qlf")
+
+
+def test_deterministic_and_info(generator: torch.Generator) -> None:
+    demos = small_lasa("Snake", stride=20)
+    fitter = functools.partial(fit_em, n_components=3)
+    a = fit_lpvds(demos, gmm=fitter, generator=torch.Generator().manual_seed(3))
+    b = LPVDS.fit(demos, gmm=fitter, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(a.gmm.means, b.gmm.means) and torch.equal(a.gmm.covariances, b.gmm.covariances)
+    # The cvxpy program is cached after the first call; a re-solve may differ at the solver's tolerance only.
+    torch.testing.assert_close(a.P, b.P, rtol=1e-7, atol=1e-9)
+    torch.testing.assert_close(a.A, b.A, rtol=1e-6, atol=1e-8)
+    for key in ("time_gmm_s", "time_p_s", "time_a_s", "time_total_s", "train_mse", "n_components", "solver"):
+        assert key in a.info
+    assert a.info["n_components"] == 3 and isinstance(a, StablePrimitive)
+
+
+# ---------------------------------------------------------------------------------------------- configs, experiment
+CONF = Path(__file__).resolve().parents[1] / "conf"
+CALL_ARGUMENTS = {"demos", "attractor", "generator"}  # data and task parameters, not hyperparameters
+
+
+@pytest.mark.parametrize("name", ["lpvds", "lpvds_qlf", "lpvds_damm", "seds"])
+def test_ds_config_keys_are_the_fitter_kwargs(name: str, generator: torch.Generator) -> None:
+    raw = OmegaConf.load(CONF / "ds" / f"{name}.yaml")
+    target = hydra.utils.get_method(raw._target_)
+    params = set(inspect.signature(target).parameters) - CALL_ARGUMENTS
+    keys = {k for k in raw if not str(k).startswith("_") and k != "defaults"}
+    if "defaults" in raw:  # the GMM fitter comes from conf/gmm through the defaults list
+        assert any("gmm@gmm" in str(entry) for entry in raw.defaults)
+        keys.add("gmm")
+    assert keys == params
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose(config_name="lasa_primitives", overrides=[f"+ds@methods.x={name}"]).methods.x
+    if "gmm" in cfg:
+        gmm_params = set(inspect.signature(hydra.utils.get_object(cfg.gmm._target_)).parameters)
+        assert {k for k in cfg.gmm if not str(k).startswith("_")} <= gmm_params
+    fit = hydra.utils.instantiate(cfg)
+    demos = small_lasa("Angle", stride=20)
+    if name == "seds":
+        fit = functools.partial(fit, max_iter=10)
+    model = fit(demos, generator=generator)
+    assert model.stability_certificate().certified
+
+
+def _compose(overrides: list[str]):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose(config_name="lasa_primitives", overrides=overrides)
+
+
+FAST = ["subsample=10", "methods.seds.n_components=3", "methods.seds.max_iter=30"]
+
+
+def test_lasa_primitives_run(tmp_path: Path) -> None:
+    sys.path.insert(0, str(CONF.parent / "experiments"))
+    from lasa_primitives import run
+
+    cfg = _compose(["data.shape=Angle", f"+out_dir={tmp_path}", *FAST])
+    result = run(cfg)
+    table = result["table"]
+    assert len(table) == 3 * 7 and set(table.method) == {"seds", "lpvds_qlf", "lpvds_pqlf"}
+    assert (table.status == "ok").all() and table.converged.all()
+    assert set(table[table.split == "test"].trajectory) == {4, 5, 6}
+    for metric in ("E1", "RMSE", "E2", "DTWD"):
+        assert np.isfinite(table[metric]).all() and (table[metric] >= 0).all()
+    assert (table.RMSE >= table.E1 - 1e-9).all()
+    stored = read_table(tmp_path / "results.parquet")
+    assert len(stored) == len(table) and (stored.config_hash.nunique() == 1)
+    reloaded = load_primitive(tmp_path / "models" / "Angle_lpvds_pqlf.pt")
+    x = torch.zeros(3, 2, dtype=torch.float64) + 5.0
+    assert torch.equal(reloaded(x), result["models"]["lpvds_pqlf"](x))
+
+
+@pytest.mark.slow
+def test_lasa_primitives_paper_preset_tiny_multirun(tmp_path: Path) -> None:
+    script = CONF.parent / "experiments" / "lasa_primitives.py"
+    cmd = [
+        sys.executable, str(script), "+experiment=lasa_primitives_paper",
+        "data.shape=Angle,Line", f"hydra.sweep.dir={tmp_path}", "save_models=false", *FAST,
+    ]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run(cmd, cwd=CONF.parent, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    table = collect(tmp_path)
+    assert set(table["shape"]) == {"Angle", "Line"} and len(table) == 2 * 3 * 7
