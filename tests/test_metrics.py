@@ -69,11 +69,34 @@ def naive_triangle_gram(p, q, r):
     return 0.5 * math.sqrt(max(uu * vv - uv * uv, 0.0))
 
 
+def _shoelace(poly):
+    return 0.5 * abs(sum(poly[k][0] * poly[(k + 1) % len(poly)][1] - poly[(k + 1) % len(poly)][0] * poly[k][1]
+                         for k in range(len(poly))))
+
+
+def _proper_crossing(a, b, c, d):
+    """The point where segments ab and cd cross in their interiors (parametric line intersection), else None."""
+    r, s = _sub(b, a), _sub(d, c)
+    den = r[0] * s[1] - r[1] * s[0]
+    if den == 0.0:
+        return None
+    w = _sub(c, a)
+    t = (w[0] * s[1] - w[1] * s[0]) / den
+    u = (w[0] * r[1] - w[1] * r[0]) / den
+    if 0.0 < t < 1.0 and 0.0 < u < 1.0:
+        return [a[0] + t * r[0], a[1] + t * r[1]]
+    return None
+
+
 def naive_quad_area(p0, p1, p2, p3):
-    if len(p0) == 2:  # shoelace over the vertex cycle
-        poly = [p0, p1, p2, p3]
-        s = sum(poly[k][0] * poly[(k + 1) % 4][1] - poly[(k + 1) % 4][0] * poly[k][1] for k in range(4))
-        return abs(0.5 * s)
+    if len(p0) == 2:  # enclosed region: split a bow-tie at the crossing of two opposite edges, add the lobes
+        x = _proper_crossing(p0, p1, p2, p3)
+        if x is not None:
+            return _shoelace([p0, x, p3]) + _shoelace([x, p1, p2])
+        x = _proper_crossing(p1, p2, p3, p0)
+        if x is not None:
+            return _shoelace([p0, p1, x]) + _shoelace([x, p2, p3])
+        return _shoelace([p0, p1, p2, p3])
     return naive_triangle_gram(p0, p1, p2) + naive_triangle_gram(p0, p2, p3)
 
 
@@ -211,9 +234,19 @@ def test_swept_area_closed_forms():
     # a non-planar 3-D quadrilateral: two triangles of area sqrt(2)/2 each
     quad = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 1], [0, 1, 0]], dtype=F64)
     torch.testing.assert_close(quadrilateral_areas(*quad), torch.tensor(math.sqrt(2.0), dtype=F64))
-    # 2-D bow-tie: the shoelace's signed lobes cancel (documented convention)
+    # 2-D bow-tie (connectors cross at (0.5, 0.5)): the two lobes of 0.25 add up, they do not cancel
     bowtie = torch.tensor([[0, 0], [1, 0], [0, 1], [1, 1]], dtype=F64)
-    torch.testing.assert_close(quadrilateral_areas(*bowtie), torch.tensor(0.0, dtype=F64))
+    torch.testing.assert_close(quadrilateral_areas(*bowtie), torch.tensor(0.5, dtype=F64))
+    # ... while the d >= 3 two-triangle rule of the same planar bow-tie gives the two triangles' 1.0 (documented)
+    torch.testing.assert_close(quadrilateral_areas(*pad(bowtie.unsqueeze(0)).squeeze(0)), torch.tensor(1.0, dtype=F64))
+    # the reviewer's zig-zag: a rollout oscillating across its reference scores 0.5 per quadrilateral, not 0
+    zig_ref = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]]], dtype=F64)
+    zig = torch.tensor([[[0.0, 1.0], [1.0, -1.0], [2.0, 1.0]]], dtype=F64)
+    torch.testing.assert_close(swept_area(zig, zig_ref), torch.tensor([0.5], dtype=F64))
+    torch.testing.assert_close(swept_area(zig, zig_ref, reduction="sum"), torch.tensor([1.0], dtype=F64))
+    # ... at any scale: no product of two tiny corner areas underflows
+    tiny = swept_area(zig * 1e-150, zig_ref * 1e-150)
+    torch.testing.assert_close(tiny / 1e-300, torch.tensor([0.5], dtype=F64))
     # zero for a rollout on the reference
     assert torch.equal(swept_area(ref2, ref2), torch.zeros(1, dtype=F64))
 
@@ -232,23 +265,116 @@ def test_swept_area_thin_triangles_float32():
     torch.testing.assert_close(got.double(), exact, rtol=1e-2, atol=0)
 
 
+def random_quads(generator, n):
+    """(4, 3n, 2) float64 quadrilaterals (x_ref,t, x_ref,t+1, x_t+1, x_t): uniform vertices, rollouts crossing the
+    reference segment, and mm-scale swept-like quadrilaterals offset far from the origin."""
+    uniform = torch.rand(4, n, 2, generator=generator, dtype=F64) * 2 - 1
+    ref0 = torch.randn(n, 2, generator=generator, dtype=F64)
+    step = torch.randn(n, 2, generator=generator, dtype=F64)
+    normal = torch.stack([-step[:, 1], step[:, 0]], -1)
+    side = torch.rand(2, n, 1, generator=generator, dtype=F64)
+    jitter = 0.3 * torch.randn(2, n, 2, generator=generator, dtype=F64)
+    # rollout endpoints on opposite sides of the reference segment: a bow-tie or a concave/convex quadrilateral
+    rollout1 = ref0 + step - side[1] * normal + jitter[1]
+    crossing = torch.stack([ref0, ref0 + step, rollout1, ref0 + side[0] * normal + jitter[0]])
+    swept = 500.0 + 30.0 * torch.randn(4, n, 2, generator=generator, dtype=F64).cumsum(0)
+    return torch.cat([uniform, crossing, swept], 1)
+
+
+def test_quadrilateral_areas_vs_shapely(generator):
+    shapely = pytest.importorskip("shapely")
+    quads = random_quads(generator, 2000)
+    got = quadrilateral_areas(*quads)
+    polygons = shapely.polygons(quads.permute(1, 0, 2).numpy())
+    want = torch.from_numpy(shapely.area(shapely.make_valid(polygons)))  # make_valid splits a bow-tie into its lobes
+    torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-12)
+    n_bowtie = int((~shapely.is_valid(polygons)).sum())
+    assert n_bowtie > quads.shape[1] // 5  # many crossing quadrilaterals were checked, not only simple ones
+    shoelace = 0.5 * (quads[2] - quads[0])[:, 0] * (quads[3] - quads[1])[:, 1]
+    shoelace = (shoelace - 0.5 * (quads[2] - quads[0])[:, 1] * (quads[3] - quads[1])[:, 0]).abs()
+    assert ((got - shoelace) > 1e-3 * got).sum() >= n_bowtie // 2  # the signed shoelace would have failed there
+
+
+def test_quadrilateral_areas_matches_loop_and_float32(generator):
+    quads = random_quads(generator, 300)
+    got = quadrilateral_areas(*quads)
+    want = torch.tensor([naive_quad_area(*quads[:, k].tolist()) for k in range(quads.shape[1])], dtype=F64)
+    torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-12)
+    got32 = quadrilateral_areas(*quads.float())
+    assert got32.dtype == torch.float32
+    torch.testing.assert_close(got32.double(), want, rtol=2e-3, atol=1e-4 * float(want.max()))
+
+
+@requires_cuda
+@pytest.mark.cuda
+def test_quadrilateral_areas_cuda_matches_cpu(generator):
+    quads = random_quads(generator, 500)
+    for dtype in (F64, torch.float32):
+        got = quadrilateral_areas(*quads.to(dtype).cuda())
+        assert got.device.type == "cuda" and got.dtype == dtype
+        torch.testing.assert_close(got.cpu(), quadrilateral_areas(*quads.to(dtype)))
+
+
+def test_quadrilateral_areas_degenerate_2d():
+    cases = [  # (p0, p1, p2, p3), exact area
+        ([[0, 0], [0, 0], [0, 0], [0, 0]], 0.0),  # one point
+        ([[0, 0], [1, 0], [3, 0], [2, 0]], 0.0),  # collinear
+        ([[0, 0], [1, 0], [0, 0], [1, 0]], 0.0),  # collinear, rollout reversed over the reference
+        ([[0, 0], [1, 0], [1, 0], [0, 0]], 0.0),  # rollout on the reference
+        ([[0, 0], [1, 0], [1, 0], [0, 1]], 0.5),  # touching at a vertex: a triangle
+        ([[0, 0], [0, 0], [1, 1], [0, 1]], 0.5),  # zero-length reference segment
+        ([[0, 0], [0, 0], [0, 1], [0, 1]], 0.0),  # both segments of zero length
+        ([[0, 0], [1, 0], [2, -1], [0, 1]], 0.5),  # rollout crosses the reference line through x_ref,t+1
+        ([[0, 0], [2, 0], [2, -1], [0, 1]], 1.0),  # symmetric bow-tie, reference crossed at its midpoint
+        ([[0, 0], [2, 0], [0, 1], [2, 1]], 1.0),  # connectors cross at (1, 0.5)
+        ([[0, 0], [2, 0], [2, 0], [1, 0]], 0.0),  # collinear with a repeated vertex
+        ([[0, 0], [2, 0], [1, 1], [1, -1]], 1.0),  # rollout crosses the reference at (1, 0): lobes 0.5 + 0.5
+    ]
+    quads = torch.tensor([q for q, _ in cases], dtype=F64).permute(1, 0, 2)
+    for dtype in (F64, torch.float32):
+        got = quadrilateral_areas(*quads.to(dtype))
+        assert torch.isfinite(got).all()
+        want = torch.tensor([naive_quad_area(*q) for q, _ in cases], dtype=F64)
+        torch.testing.assert_close(got.double(), want, rtol=1e-6, atol=1e-7)
+    torch.testing.assert_close(want, torch.tensor([a for _, a in cases], dtype=F64))
+
+
+def test_quadrilateral_areas_3d_vs_2d_planar(generator):
+    # The two-triangle rule of a planar quadrilateral embedded in 3-D is never below the 2-D region area, equals it
+    # when the diagonal p0p2 is inside (convex; reflex vertex at p0 or p2) and exceeds it by twice the notch triangle
+    # when the reflex vertex is p1 (documented in quadrilateral_areas).
+    quads = random_quads(generator, 500)
+    q, _ = torch.linalg.qr(torch.randn(3, 3, generator=generator, dtype=F64))
+    shift = torch.randn(3, generator=generator, dtype=F64)
+    lifted = torch.cat([quads, torch.zeros_like(quads[..., :1])], -1) @ q.T + shift
+    area2, area3 = quadrilateral_areas(*quads), quadrilateral_areas(*lifted)
+    assert (area3 >= area2 * (1 - 1e-9) - 1e-12).all()
+    p0, p1, p2, p3 = quads
+    cross = lambda u, v: u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]  # noqa: E731
+    t012, t023 = 0.5 * cross(p1 - p0, p2 - p0), 0.5 * cross(p2 - p0, p3 - p0)
+    simple = (area2 - (t012 + t023).abs()).abs() <= 1e-9 * area2
+    inside = simple & (t012 * t023 > 0)  # p1 and p3 on opposite sides of the diagonal p0p2
+    torch.testing.assert_close(area3[inside], area2[inside], rtol=1e-9, atol=1e-12)
+    notch = simple & (t012 * t023 < 0)
+    extra = 2 * torch.minimum(t012.abs(), t023.abs())
+    torch.testing.assert_close(area3[notch], area2[notch] + extra[notch], rtol=1e-9, atol=1e-12)
+    assert inside.sum() > 100 and notch.sum() > 20
+
+
 def test_swept_area_vs_shapely(generator):
-    geometry = pytest.importorskip("shapely.geometry")
+    shapely = pytest.importorskip("shapely")
     B, T = 3, 20
     x_ref = random_walks(generator, B, T, 2)
-    x = x_ref + torch.randn(B, T, 2, generator=generator, dtype=F64)
-    got = swept_area(x, x_ref, reduction="sum")
-    n_valid = 0
-    for b in range(B):
-        want = 0.0
-        for t in range(T - 1):
-            vertices = [x_ref[b, t].tolist(), x_ref[b, t + 1].tolist(), x[b, t + 1].tolist(), x[b, t].tolist()]
-            poly = geometry.Polygon(vertices)
-            # shapely's area is meaningless for an invalid (bow-tie) polygon: use the loop's shoelace there
-            want += poly.area if poly.is_valid else naive_quad_area(*vertices)
-            n_valid += poly.is_valid
-        assert float(got[b]) == pytest.approx(want, rel=1e-10)
-    assert n_valid > B * (T - 1) // 3  # most quadrilaterals were checked against shapely itself
+    x = x_ref + 2.0 * torch.randn(B, T, 2, generator=generator, dtype=F64)  # crosses the reference often
+    lengths = torch.tensor([20, 13, 7])
+    got = swept_area(x, x_ref, lengths=lengths, reduction="sum")
+    n_bowtie = 0
+    for b, n in enumerate(lengths.tolist()):
+        quads = torch.stack([x_ref[b, : n - 1], x_ref[b, 1:n], x[b, 1:n], x[b, : n - 1]], 1).numpy()
+        polygons = shapely.polygons(quads)
+        n_bowtie += int((~shapely.is_valid(polygons)).sum())
+        assert float(got[b]) == pytest.approx(float(shapely.area(shapely.make_valid(polygons)).sum()), rel=1e-9)
+    assert n_bowtie >= 5
 
 
 # ----------------------------------------------------------------------------------------- DTW

@@ -9,7 +9,9 @@ Notation:
     mask       (B, T)     True on valid samples (or ``lengths`` (B,) for prefix-valid rows)
 
 For each t with samples t and t+1 both valid (t = 0..T_i-2 for a trajectory with T_i valid samples: T_i-1
-quadrilaterals) the quadrilateral Q_t = (x_ref,t, x_ref,t+1, x_t+1, x_t) is formed and its area measured.
+quadrilaterals) the quadrilateral Q_t = (x_ref,t, x_ref,t+1, x_t+1, x_t) is formed and its area measured: in 2-D the
+area of the region it encloses (a rollout crossing the reference within a step forms a bow-tie, whose two lobes add
+up), in d >= 3 the two triangles split along the diagonal x_ref,t -> x_t+1 (see :func:`quadrilateral_areas`).
 """
 
 from __future__ import annotations
@@ -50,13 +52,64 @@ def triangle_areas(u: Tensor, v: Tensor) -> Tensor:
     return 0.5 * torch.linalg.vector_norm(minors, dim=-1)
 
 
-def quadrilateral_areas(p0: Tensor, p1: Tensor, p2: Tensor, p3: Tensor) -> Tensor:
-    """Areas of the quadrilaterals (p0, p1, p2, p3), vertices in this order.
+def _cross2(u: Tensor, v: Tensor) -> Tensor:
+    """z-component of the 2-D cross product u x v, shapes (..., 2) -> (...)."""
+    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
 
-    d = 2: the shoelace formula, i.e. the absolute value of the signed polygon area,
-    0.5 * |(p2 - p0) x (p3 - p1)|. For a self-intersecting ("bow-tie") quadrilateral this is the difference of the
-    two lobes' areas, as the shoelace formula gives. d >= 3: the sum of the triangle areas (p0, p1, p2) and
-    (p0, p2, p3) (:func:`triangle_areas`); for a planar convex quadrilateral it equals the shoelace area.
+
+def _region_areas_2d(p0: Tensor, p1: Tensor, p2: Tensor, p3: Tensor) -> Tensor:
+    """Area of the plane region enclosed by the closed polygon p0 -> p1 -> p2 -> p3 -> p0 (see quadrilateral_areas)."""
+    e0, e1, e2, e3 = p1 - p0, p2 - p1, p3 - p2, p0 - p3
+    # twice the signed corner triangles, c_k = 2 T(p_{k-1}, p_k, p_{k+1}) = e_{k-1} x e_k
+    c0, c1, c2, c3 = _cross2(e3, e0), _cross2(e0, e1), _cross2(e1, e2), _cross2(e2, e3)
+    # opposite strict signs from comparisons, not products: a product of two tiny corners can underflow to 0
+    pos0, pos1, pos2, pos3 = c0 > 0, c1 > 0, c2 > 0, c3 > 0
+    neg0, neg1, neg2, neg3 = c0 < 0, c1 < 0, c2 < 0, c3 < 0
+    cross_01_23 = ((pos0 & neg1) | (neg0 & pos1)) & ((pos2 & neg3) | (neg2 & pos3))  # edge p0p1 crosses p2p3
+    cross_12_30 = ((pos0 & neg3) | (neg0 & pos3)) & ((pos1 & neg2) | (neg1 & pos2))  # edge p1p2 crosses p3p0
+    crossing = cross_01_23 | cross_12_30
+    # Lobe sums (see quadrilateral_areas) as 2 A = |c0| w + |r| (1 - w) with w = q / (q - c2):
+    #   p0p1 crosses p2p3: (q, r) = (c3, c1), w = mu = |c3| / (|c2| + |c3|);
+    #   p1p2 crosses p3p0: (q, r) = (c1, c3), w = |c1| / (|c1| + |c2|) = |c1| / (|c0| + |c3|) as c0 - c3 = c1 - c2,
+    #   so that |c0| w + |c3| (1 - w) = lam |c1| + (1 - lam) |c2|.
+    # q and c2 have opposite signs there: w lies in [0, 1] without cancellation, and no product of two corners is
+    # formed (it could underflow for tiny quadrilaterals).
+    q = torch.where(cross_01_23, c3, c1)
+    r = torch.where(cross_01_23, c1, c3)
+    w = q / torch.where(crossing, q - c2, torch.ones((), dtype=c0.dtype, device=c0.device))  # q - c2 != 0 there
+    lobes = c0.abs() * w + r.abs() * (1.0 - w)
+    shoelace = (c1 + c3).abs()  # = |c0 + c2|, twice the area of a simple quadrilateral
+    return 0.5 * torch.where(crossing, lobes, shoelace)
+
+
+def quadrilateral_areas(p0: Tensor, p1: Tensor, p2: Tensor, p3: Tensor) -> Tensor:
+    """Areas of the quadrilaterals (p0, p1, p2, p3), vertices in this order (edges p0p1, p1p2, p2p3, p3p0).
+
+    d = 2: the area of the plane region enclosed by the closed polygon, i.e. the integral of |winding number|:
+
+    * simple quadrilateral (convex or concave): |shoelace| = 0.5 |c1 + c3| (= 0.5 |(p2 - p0) x (p3 - p1)|);
+    * self-intersecting ("bow-tie") quadrilateral, where edge p0p1 crosses edge p2p3 or edge p1p2 crosses edge
+      p3p0 at a point X: the sum of the two triangular lobes' areas, split at X. (The shoelace would give the
+      difference of the lobes, so that a rollout crossing its reference within a step would score 0.)
+
+      With twice the signed corner triangles c_k = (p_k - p_{k-1}) x (p_{k+1} - p_k) (indices mod 4; the
+      shoelace is c0 + c2 = c1 + c3): p0p1 and p2p3 cross iff c0, c1 have opposite signs and c2, c3 have
+      opposite signs; they meet at X = p0 + mu (p1 - p0), mu = |c3| / (|c2| + |c3|), and the area is
+      0.5 (mu |c0| + (1 - mu) |c1|). p1p2 and p3p0 cross iff c0, c3 and c1, c2 have opposite signs; they meet at
+      X = p1 + lam (p2 - p1), lam = |c0| / (|c0| + |c3|), and the area is 0.5 (lam |c1| + (1 - lam) |c2|). At
+      most one pair of opposite edges can cross. Both lobe formulas reduce to |shoelace| when a corner triangle
+      vanishes, so the area is continuous across touching and collinear configurations, and their denominators
+      are never 0 where they are used: degenerate quadrilaterals (collinear vertices, touching at a
+      vertex, zero-length edges) give finite values.
+
+    d >= 3: the sum of the triangle areas (p0, p1, p2) and (p0, p2, p3) (:func:`triangle_areas`), i.e. the
+    quadrilateral split along the diagonal p0p2 (NOTES.md: "use the two triangles"); it is defined for non-planar
+    quadrilaterals, where there is no enclosed plane region. For a *planar* quadrilateral it equals
+    |T(p0,p1,p2)| + |T(p0,p2,p3)|, which is never below the 2-D area above and equals it exactly when the diagonal
+    p0p2 lies inside the quadrilateral: for every convex quadrilateral and for a concave one whose reflex vertex is
+    p0 or p2. A concave quadrilateral with its reflex vertex at p1 (or p3) gives the 2-D area plus twice the notch
+    triangle |T(p0,p1,p2)| (or |T(p0,p2,p3)|); a bow-tie gives at least the lobe sum, in general more (each
+    triangle contains one lobe and some outside area; the unit-square bow-tie gives 1 against 0.5).
 
     Args:
         p0, p1, p2, p3: (..., d) vertices, data units.
@@ -65,9 +118,7 @@ def quadrilateral_areas(p0: Tensor, p1: Tensor, p2: Tensor, p3: Tensor) -> Tenso
         (...) areas in squared data units.
     """
     if p0.shape[-1] == 2:
-        a = p2 - p0
-        b = p3 - p1
-        return 0.5 * (a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]).abs()
+        return _region_areas_2d(p0, p1, p2, p3)
     e2 = p2 - p0
     return triangle_areas(p1 - p0, e2) + triangle_areas(e2, p3 - p0)
 
@@ -84,7 +135,8 @@ def swept_area(
 
     Quadrilateral t is (x_ref,t, x_ref,t+1, x_t+1, x_t); it counts when samples t and t+1 are both valid, so a
     prefix-valid trajectory with T_i samples contributes T_i - 1 quadrilaterals (t = 0..T_i-2) and ``"mean"``
-    divides by T_i - 1. Areas follow :func:`quadrilateral_areas` (shoelace in 2-D, two triangles in d >= 3).
+    divides by T_i - 1. Areas follow :func:`quadrilateral_areas` (enclosed region in 2-D, bow-tie lobes added, not
+    cancelled; two triangles in d >= 3).
     The two inputs are paired sample by sample: a rollout that stopped early must be padded (e.g. with its last
     position) to the reference's time grid by the caller.
 
