@@ -352,8 +352,10 @@ def test_to_demos(generator):
     assert res.lengths[3] == 1 and demos.lengths[3] == 3  # a start at the goal is extended with frozen samples
     assert torch.equal(demos.lengths[:3], res.lengths[:3])
     assert demos.max_length == int(res.lengths.max())
-    torch.testing.assert_close(demos.times[0], torch.arange(demos.max_length, dtype=torch.float64) * 0.02)
+    n0 = int(demos.lengths[0])
+    torch.testing.assert_close(demos.times[0, :n0], torch.arange(n0, dtype=torch.float64) * 0.02)
     torch.testing.assert_close(demos.positions, res.positions[:, : demos.max_length])
+    assert torch.all(demos.times[0, n0:] == demos.times[0, n0 - 1])  # Demos edge-pads times
     assert torch.equal(demos.attractor, g)
     with pytest.raises(TooFewSamplesError):
         rollout(field, x0, 0.02, 1).to_demos()
