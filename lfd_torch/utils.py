@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import hashlib
+
 import torch
 
 from lfd_torch.errors import UnknownNameError
 
-__all__ = ["resolve_dtype", "resolve_device"]
+__all__ = ["resolve_dtype", "resolve_device", "derive_seed"]
 
 _DTYPES = {"float16": torch.float16, "bfloat16": torch.bfloat16, "float32": torch.float32, "float64": torch.float64}
 
@@ -28,3 +30,12 @@ def resolve_device(device: torch.device | str | None) -> torch.device | None:
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(device)
+
+
+def derive_seed(*parts: object) -> int:
+    """A 63-bit seed derived from ``parts`` (e.g. experiment, shape, seed index): stable across runs and machines.
+
+    Gives every (experiment, shape, seed) its own stream without a global RNG, as ``torch.Generator().manual_seed``.
+    """
+    digest = hashlib.sha256("/".join(str(p) for p in parts).encode()).digest()
+    return int.from_bytes(digest[:8], "little") >> 1
