@@ -1,0 +1,106 @@
+"""Beta-process feature sharing through the two-parameter Indian buffet process (paper eqs. 1-2).
+
+Notation:
+    N   number of sequences
+    K   number of feature slots (columns); a column no sequence owns is unused
+    F   (..., N, K) bool, F[i, k] = 1 when sequence i owns feature k (the paper's binary vector f_i / q_i)
+    gamma  mass of the Beta process (the expected number of features of one sequence)
+    c      concentration of the Beta process (the paper's alpha in eq. 1)
+
+Marginalising the Beta process H gives the two-parameter IBP (Griffiths & Ghahramani 2011): given the other
+sequences, sequence i owns an existing feature k with probability m_{-i,k} / (c + N - 1) (eq. 2), and owns
+Poisson(gamma c / (c + N - 1)) features that no other sequence owns ("unique" features).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "shared_log_odds",
+    "unique_feature_rate",
+    "ibp_log_prior",
+    "sample_ibp",
+]
+
+
+def shared_log_odds(counts_others: Tensor, n_sequences: int, concentration: float) -> Tensor:
+    """log p(f_ik = 1 | F_-i) - log p(f_ik = 0 | F_-i) for a feature other sequences own (m_{-i,k} > 0).
+
+    Args:
+        counts_others: (...) m_{-i,k}, values in 1..N-1.
+        n_sequences: N.
+        concentration: c > 0.
+
+    Returns:
+        (...) log odds log m - log(c + N - 1 - m).
+    """
+    m = counts_others.to(torch.get_default_dtype() if not counts_others.is_floating_point() else counts_others.dtype)
+    return torch.log(m) - torch.log(concentration + n_sequences - 1.0 - m)
+
+
+def unique_feature_rate(mass: float, concentration: float, n_sequences: int) -> float:
+    """Poisson rate gamma c / (c + N - 1) of the features only one sequence owns."""
+    return mass * concentration / (concentration + n_sequences - 1.0)
+
+
+def ibp_log_prior(features: Tensor, mass: float | Tensor, concentration: float) -> Tensor:
+    """log probability of the equivalence class of a binary matrix under the two-parameter IBP.
+
+    p([F]) = (gamma c)^K+ / prod_h K_h! * exp(-gamma sum_{n=1}^N c / (c + n - 1)) * prod_k B(m_k, N - m_k + c),
+    where K+ counts owned columns and K_h the columns with identical pattern h (Griffiths & Ghahramani 2011).
+
+    Args:
+        features: (N, K) bool; columns nobody owns are ignored.
+        mass: gamma.
+        concentration: c.
+
+    Returns:
+        scalar tensor.
+    """
+    f = features.to(torch.float64)
+    n = f.shape[-2]
+    m = f.sum(-2)
+    owned = m > 0
+    m = m[owned]
+    mass_t = torch.as_tensor(mass, dtype=torch.float64)
+    harmonic = sum(concentration / (concentration + j) for j in range(n))
+    k_plus = m.numel()
+    log_beta = torch.lgamma(m) + torch.lgamma(n - m + concentration) - torch.lgamma(torch.as_tensor(n + concentration, dtype=torch.float64))
+    cols = f[:, owned].T  # (K+, N)
+    _, multiplicity = torch.unique(cols, dim=0, return_counts=True) if k_plus else (None, torch.zeros(0))
+    log_hist = torch.lgamma(multiplicity.to(torch.float64) + 1.0).sum()
+    return k_plus * (torch.log(mass_t) + math.log(concentration)) - log_hist - mass_t * harmonic + log_beta.sum()
+
+
+def sample_ibp(
+    n_sequences: int, mass: float, concentration: float, generator: torch.Generator, max_features: int = 10_000
+) -> Tensor:
+    """Draw a binary matrix from the two-parameter IBP by its sequential (buffet) construction.
+
+    Sequence i owns each existing feature with probability m_k / (c + i) and adds Poisson(gamma c / (c + i)) new
+    ones (i = 0..N-1).
+
+    Returns:
+        (N, K) bool, columns in order of first appearance.
+    """
+    counts = torch.zeros(0, dtype=torch.float64)
+    rows: list[Tensor] = []
+    for i in range(n_sequences):
+        p = counts / (concentration + i)
+        own = torch.rand(counts.shape, generator=generator, dtype=torch.float64) < p
+        rate = torch.tensor([mass * concentration / (concentration + i)], dtype=torch.float64)
+        n_new = int(torch.poisson(rate, generator=generator))
+        row = torch.cat([own, torch.ones(n_new, dtype=torch.bool)])
+        counts = torch.cat([counts + own.double(), torch.ones(n_new, dtype=torch.float64)])
+        if counts.numel() > max_features:
+            raise RuntimeError(f"IBP draw exceeded {max_features} features")
+        rows.append(row)
+    k = counts.numel()
+    out = torch.zeros(n_sequences, k, dtype=torch.bool)
+    for i, r in enumerate(rows):
+        out[i, : r.numel()] = r
+    return out

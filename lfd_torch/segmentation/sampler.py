@@ -1,0 +1,639 @@
+"""MCMC for the Beta-process Gaussian-emission HMM (BP-GM-HMM, paper Sec. III-A).
+
+Notation:
+    C  independent chains, N sequences, T padded length (after optional subsampling), d state dimension
+    K  feature slots shared by all chains (grown and compacted as features are born and die)
+    features  (C, N, K) bool   f_i per chain
+    mean      (C, K, d), covariance (C, K, d, d)   Gaussian emission of each feature (paper eq. 4)
+    weights   (C, N, K, K)      sticky transition weights eta (paper eq. 3, see transitions.py)
+    states    (C, N, T) long    hidden state sequences
+
+One sweep (Fox, Hughes, Sudderth & Jordan 2014, AOAS 8(3); state-sequence marginalised feature moves):
+    1. shared features: for every sequence i and every feature k owned by another sequence, a Metropolis-Hastings
+       flip of f_ik scored by p(x^(i) | f_i, eta^(i), theta) with the states summed out (forward algorithm) and the
+       IBP conditional m_{-i,k} / (c + N - 1);
+    2. unique features: reversible-jump birth / death of a feature owned by sequence i alone. A birth draws theta* from
+       the NIW posterior of a random window W of x^(i) (mixed with the prior); the window is an auxiliary variable
+       that the reverse (death) move redraws from r(W | theta), the windows weighted by their fit to theta. This keeps
+       the data-driven proposal exactly reversible: the ratio carries r(W | theta*) / (p(W) q(theta* | W));
+    3. blocked Gibbs draw of every state sequence by forward filtering / backward sampling;
+    4. conjugate draws of the emissions (NIW) and transition weights (Dirichlet/Gamma);
+    5. optionally, gamma | F (conjugate Gamma) and alpha, kappa (random-walk Metropolis on their logarithm).
+All moves are batched over chains. Move 1 computes the likelihoods of all flips of a block of features for all
+sequences in one forward pass and then decides sequence by sequence (the IBP couples the rows through m_{-i,k});
+move 2 is batched over sequences too (unique features of different sequences do not interact); move 3 over chains
+and sequences. The chain with the best joint log probability (over the samples after burn-in) is returned.
+
+Subsampling (done by :func:`lfd_torch.segmentation.segment`, ``max_samples``) bounds T: the forward recursion is
+sequential in T, so the cost of a sweep is about (number of feature blocks + 2) x T small batched operations.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from lfd_torch.errors import NonFiniteError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.segmentation.emissions import (
+    NIWPrior,
+    gaussian_log_density,
+    niw_log_density,
+    niw_posterior,
+    niw_prior_from_data,
+    sample_gamma,
+    sample_niw,
+    sufficient_statistics,
+)
+from lfd_torch.segmentation.features import ibp_log_prior, shared_log_odds, unique_feature_rate
+from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood
+from lfd_torch.segmentation.transitions import (
+    dirichlet_log_density_rows,
+    initial_distribution,
+    sample_transition_weights_posterior,
+    sample_transition_weights_prior,
+    transition_counts,
+    transition_matrix,
+)
+
+__all__ = ["SamplerResult", "BetaProcessHMMSampler"]
+
+_NEG_INF = float("-inf")
+_BLOCK = 2  # features whose flips share one batched forward pass (2^2 - 1 = 3 variants per sequence)
+
+
+@dataclass(frozen=True, eq=False)
+class SamplerResult:
+    """The best sample of a BP-GM-HMM run.
+
+    Attributes:
+        states: (N, T) long state labels on the sampled grid (padding repeats the last valid label); labels index
+            the K features below.
+        lengths: (N,) valid samples per sequence on the sampled grid.
+        features: (N, K) bool feature matrix F.
+        mean: (K, d) emission means.
+        covariance: (K, d, d) emission covariances.
+        log_prob: joint log probability of the returned sample.
+        trace: (C, n_iterations) joint log probability of every chain after every sweep.
+        n_features_trace: (C, n_iterations) number of features owned by at least one sequence.
+        chain: index of the chain the sample comes from.
+        hyperparameters: final (mass, transition_concentration, stickiness) of that chain.
+        acceptance: acceptance rates of the moves {"shared", "birth", "death"}.
+    """
+
+    states: Tensor
+    lengths: Tensor
+    features: Tensor
+    mean: Tensor
+    covariance: Tensor
+    log_prob: float
+    trace: Tensor
+    n_features_trace: Tensor
+    chain: int
+    hyperparameters: dict[str, float] = field(default_factory=dict)
+    acceptance: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def n_features(self) -> int:
+        return self.mean.shape[0]
+
+
+class BetaProcessHMMSampler:
+    """Markov chain Monte Carlo for the BP-GM-HMM (see the module docstring for the moves).
+
+    Args:
+        feature_mass: gamma, mass of the Beta process (expected features per sequence).
+        feature_concentration: c, concentration of the Beta process (paper eq. 1 alpha).
+        transition_concentration: alpha of the sticky Dirichlet rows (paper eq. 3 beta).
+        stickiness: kappa, extra weight on self-transitions (paper eq. 3).
+        covariance_scale: expected emission covariance as a fraction of the data variance (NIW prior scale).
+        mean_pseudo_count: kappa0 of the NIW prior.
+        extra_dof: nu0 - d - 1 of the NIW prior.
+        n_chains: independent chains C (run batched).
+        n_iterations: sweeps per chain.
+        burn_in: fraction of the sweeps discarded before the best sample is searched.
+        n_initial_features: shared features every sequence owns at the start (drawn from random data windows).
+        birth_window: length of the birth proposal's data window as a fraction of the sequence length.
+        birth_prior_mix: probability that the birth proposal draws theta* from the prior instead of the window
+            posterior (keeps the reverse death move possible for features far from the data).
+        resample_hyperparameters: also sample gamma, alpha and kappa.
+        progress: show a tqdm progress bar.
+    """
+
+    def __init__(
+        self,
+        *,
+        feature_mass: float = 2.0,
+        feature_concentration: float = 1.0,
+        transition_concentration: float = 1.0,
+        stickiness: float = 25.0,
+        covariance_scale: float = 0.05,
+        mean_pseudo_count: float = 0.01,
+        extra_dof: float = 2.0,
+        n_chains: int = 4,
+        n_iterations: int = 100,
+        burn_in: float = 0.5,
+        n_initial_features: int = 4,
+        birth_window: float = 0.1,
+        birth_prior_mix: float = 0.1,
+        resample_hyperparameters: bool = False,
+        progress: bool = False,
+    ) -> None:
+        positive = dict(
+            feature_mass=feature_mass, feature_concentration=feature_concentration,
+            transition_concentration=transition_concentration, covariance_scale=covariance_scale,
+            mean_pseudo_count=mean_pseudo_count, extra_dof=extra_dof, birth_window=birth_window,
+        )  # fmt: skip
+        for name, value in positive.items():
+            if not (isinstance(value, (int, float)) and value > 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+        if not stickiness >= 0:
+            raise ValueError(f"stickiness must be >= 0, got {stickiness!r}")
+        if n_chains < 1 or n_iterations < 1 or n_initial_features < 1:
+            raise ValueError("n_chains, n_iterations and n_initial_features must be >= 1")
+        if not 0 <= burn_in < 1:
+            raise ValueError(f"burn_in must be in [0, 1), got {burn_in!r}")
+        if not 0 < birth_prior_mix < 1:
+            raise ValueError(f"birth_prior_mix must be in (0, 1), got {birth_prior_mix!r}")
+        self.feature_mass = float(feature_mass)
+        self.feature_concentration = float(feature_concentration)
+        self.transition_concentration = float(transition_concentration)
+        self.stickiness = float(stickiness)
+        self.covariance_scale = float(covariance_scale)
+        self.mean_pseudo_count = float(mean_pseudo_count)
+        self.extra_dof = float(extra_dof)
+        self.n_chains = int(n_chains)
+        self.n_iterations = int(n_iterations)
+        self.burn_in = float(burn_in)
+        self.n_initial_features = int(n_initial_features)
+        self.birth_window = float(birth_window)
+        self.birth_prior_mix = float(birth_prior_mix)
+        self.resample_hyperparameters = bool(resample_hyperparameters)
+        self.progress = bool(progress)
+
+    # ------------------------------------------------------------------ public
+    def run(self, sequences: list[Tensor], generator: torch.Generator, prior: NIWPrior | None = None) -> SamplerResult:
+        """Sample the BP-GM-HMM posterior of a set of sequences.
+
+        Args:
+            sequences: N tensors (T_i, d), T_i >= 2, all with the same d, dtype and device.
+            generator: source of all randomness (on the sequences' device).
+            prior: NIW prior of the emissions; None sets it from the data (:func:`niw_prior_from_data`).
+
+        Returns:
+            SamplerResult of the best sample.
+        """
+        x, lengths = _pad(sequences)
+        run = _Run(self, x, lengths, generator, prior)
+        return run.sample()
+
+
+def _pad(sequences: list[Tensor]) -> tuple[Tensor, Tensor]:
+    if len(sequences) == 0:
+        raise TooFewSamplesError("no sequence to segment")
+    d = sequences[0].shape[-1]
+    for i, s in enumerate(sequences):
+        if s.ndim != 2 or s.shape[-1] != d:
+            raise ShapeMismatchError(f"sequences must be (T_i, {d}), got {tuple(s.shape)}", i)
+        if s.shape[0] < 2:
+            raise TooFewSamplesError(f"has {s.shape[0]} samples, at least 2 are needed", i)
+        if not torch.isfinite(s).all():
+            raise NonFiniteError("contains NaN or Inf", i)
+    T = max(s.shape[0] for s in sequences)
+    x = torch.stack([torch.cat([s, s[-1:].expand(T - s.shape[0], d)]) for s in sequences])
+    lengths = torch.tensor([s.shape[0] for s in sequences], dtype=torch.long, device=x.device)
+    return x, lengths
+
+
+class _Run:
+    """Mutable state of one sampler run (all chains batched)."""
+
+    def __init__(
+        self, cfg: BetaProcessHMMSampler, x: Tensor, lengths: Tensor, generator: torch.Generator, prior: NIWPrior | None
+    ) -> None:
+        self.cfg = cfg
+        self.gen = generator
+        self.x = x  # (N, T, d)
+        self.N, self.T, self.d = x.shape
+        self.C = cfg.n_chains
+        self.xc = x.unsqueeze(0).expand(self.C, *x.shape)  # (C, N, T, d): per-chain data view (shared here)
+        self.lengths = lengths
+        self.dtype, self.device = x.dtype, x.device
+        self.valid = torch.arange(self.T, device=self.device).unsqueeze(0) < lengths.unsqueeze(1)  # (N, T)
+        flat = x[self.valid]
+        if prior is None:
+            prior = niw_prior_from_data(
+                flat, covariance_scale=cfg.covariance_scale, mean_pseudo_count=cfg.mean_pseudo_count,
+                extra_dof=cfg.extra_dof,
+            )  # fmt: skip
+        self.prior = prior
+        self.mass = torch.full((self.C,), cfg.feature_mass, dtype=self.dtype, device=self.device)
+        self.alpha = torch.full((self.C,), cfg.transition_concentration, dtype=self.dtype, device=self.device)
+        self.kappa = torch.full((self.C,), cfg.stickiness, dtype=self.dtype, device=self.device)
+        self.window = (lengths.to(self.dtype) * cfg.birth_window).round().long().clamp_min(min(self.d + 2, 4))
+        self.window = torch.minimum(self.window, lengths)
+        self.accept = {"shared": [0, 0], "birth": [0, 0], "death": [0, 0]}
+        self._initialise()
+
+    # ------------------------------------------------------------------ helpers
+    def _rand(self, *shape: int) -> Tensor:
+        return torch.rand(*shape, generator=self.gen, dtype=self.dtype, device=self.device)
+
+    def _gamma_prior_weights(self, shape: tuple[int, ...], K: int) -> Tensor:
+        view = (-1, *([1] * (len(shape) + 2)))
+        return sample_transition_weights_prior(
+            (self.C, *shape), K, self.alpha.view(view), self.kappa.view(view), self.gen, dtype=self.dtype,
+            device=self.device,
+        )  # fmt: skip
+
+    def _emission(self, mean: Tensor, covariance: Tensor) -> Tensor:
+        """(C, N, T, K) log emission densities of every sample under every slot."""
+        C, K = mean.shape[:2]
+        flat = self.xc.reshape(C, self.N * self.T, self.d)
+        return gaussian_log_density(flat, mean, covariance).reshape(C, self.N, self.T, K)
+
+    def _marginal(self, features: Tensor, weights: Tensor, log_emission: Tensor, lengths: Tensor) -> Tensor:
+        """log p(x | f, eta, theta), states summed out. features (B, K), weights (B, K, K), log_emission (B, T, K)."""
+        le = log_emission.masked_fill(~features.unsqueeze(1), _NEG_INF)
+        init = initial_distribution(features, self.dtype)
+        P = transition_matrix(weights, features)
+        ll = forward_log_likelihood(le, init, P, lengths)
+        return torch.where(features.any(-1), ll, torch.full_like(ll, _NEG_INF))
+
+    def _marginal_all(self) -> Tensor:
+        C, N, K = self.F.shape
+        ll = self._marginal(
+            self.F.reshape(C * N, K), self.eta.reshape(C * N, K, K), self.loge.reshape(C * N, self.T, K),
+            self.lengths.repeat(C),
+        )  # fmt: skip
+        return ll.reshape(C, N)
+
+    # ------------------------------------------------------------------ initialisation
+    def _initialise(self) -> None:
+        C, N, K = self.C, self.N, self.cfg.n_initial_features
+        # features from random windows of random sequences
+        means, covs = [], []
+        for _ in range(K):
+            seq = torch.randint(N, (C,), generator=self.gen, device=self.device)
+            mu_k, cov_k = [], []
+            for c in range(C):
+                i = int(seq[c])
+                L = int(self.window[i])
+                start = torch.randint(int(self.lengths[i]) - L + 1, (1,), generator=self.gen, device=self.device)
+                xw = self.xc[c, i, int(start) : int(start) + L]
+                stats = sufficient_statistics(xw, torch.ones(L, 1, dtype=self.dtype, device=self.device))
+                post = niw_posterior(self.prior, stats[0][0], stats[1][0], stats[2][0])
+                m, s = sample_niw(post, self.gen)
+                mu_k.append(m)
+                cov_k.append(s)
+            means.append(torch.stack(mu_k))
+            covs.append(torch.stack(cov_k))
+        self.mean = torch.stack(means, 1)  # (C, K, d)
+        self.cov = torch.stack(covs, 1)
+        self.F = torch.ones(C, N, K, dtype=torch.bool, device=self.device)
+        self.eta = self._gamma_prior_weights((N,), K)
+        self.loge = self._emission(self.mean, self.cov)
+        self.ll = self._marginal_all()
+        self.s = torch.zeros(C, N, self.T, dtype=torch.long, device=self.device)
+        self._sample_states()
+
+    # ------------------------------------------------------------------ slot management
+    def _compact(self) -> None:
+        """Relabel each chain's slots so its owned features come first, then drop the slots no chain needs.
+
+        Chains are independent, so a slot index means a different feature in each chain; K becomes the largest
+        number of features a single chain owns (not the union over chains), which keeps the K x K transition
+        products small.
+        """
+        owned = self.F.any(1)  # (C, K)
+        K_new = int(owned.sum(-1).max())
+        perm = torch.argsort((~owned).to(torch.int8), dim=-1, stable=True)  # (C, K): owned slots first
+        if K_new == self.F.shape[-1] and bool((perm == torch.arange(perm.shape[-1], device=self.device)).all()):
+            return
+        inverse = torch.argsort(perm, dim=-1)
+        C, N, K = self.F.shape
+        keep = perm[:, :K_new]  # (C, K_new)
+        self.F = self.F.gather(-1, keep.view(C, 1, K_new).expand(C, N, K_new))
+        self.mean = self.mean.gather(1, keep.view(C, K_new, 1).expand(C, K_new, self.d))
+        self.cov = self.cov.gather(1, keep.view(C, K_new, 1, 1).expand(C, K_new, self.d, self.d))
+        eta = self.eta.gather(2, keep.view(C, 1, K_new, 1).expand(C, N, K_new, K))
+        self.eta = eta.gather(3, keep.view(C, 1, 1, K_new).expand(C, N, K_new, K_new))
+        self.loge = self.loge.gather(-1, keep.view(C, 1, 1, K_new).expand(C, N, self.T, K_new))
+        self.s = inverse.gather(1, self.s.reshape(C, -1)).reshape(C, N, self.T)
+
+    def _grow(self, n_free: int) -> None:
+        """Make sure every chain has at least ``n_free`` slots it does not use."""
+        free = (~self.F.any(1)).sum(-1)  # (C,)
+        extra = int((n_free - free).clamp_min(0).max())
+        if extra == 0:
+            return
+        K = self.F.shape[-1]
+        m, s = sample_niw(
+            NIWPrior(self.prior.mean.expand(self.C, extra, self.d), self.prior.kappa, self.prior.dof,
+                     self.prior.scale.expand(self.C, extra, self.d, self.d)),
+            self.gen,
+        )  # fmt: skip
+        self.mean = torch.cat([self.mean, m], 1)
+        self.cov = torch.cat([self.cov, s], 1)
+        self.F = torch.cat([self.F, self.F.new_zeros(self.C, self.N, extra)], -1)
+        new_eta = self._gamma_prior_weights((self.N,), K + extra)
+        new_eta[:, :, :K, :K] = self.eta
+        self.eta = new_eta
+        self.loge = torch.cat([self.loge, self._emission(m, s)], -1)
+
+    # ------------------------------------------------------------------ moves
+    def _shared_moves(self) -> None:
+        """MH flips of every f_ik whose feature another sequence owns.
+
+        Row i's likelihood depends on f_i only, and f_i changes only through its own decisions. Features are taken
+        in random blocks of ``_BLOCK``; for a block, the likelihood of every subset of flips of every (chain,
+        sequence) comes from one batched forward pass (2^b - 1 variants per row). The decisions then run feature by
+        feature and sequence by sequence, each reading the likelihood of its current subset, with the IBP
+        conditional m_{-i,k} / (c + N - 1) of the current matrix: an exact sequential Metropolis-Hastings scan
+        with b times fewer forward passes.
+        """
+        C, N, K = self.F.shape
+        c_conc = self.cfg.feature_concentration
+        order = torch.randperm(K, generator=self.gen, device=self.device)
+        order = order[self.F.any(1).any(0)[order]].tolist()  # slots some sequence owns
+        for start in range(0, len(order), _BLOCK):
+            block = order[start : start + _BLOCK]
+            b = len(block)
+            n_sub = 2**b
+            masks = torch.tensor([[(s >> j) & 1 for j in range(b)] for s in range(1, n_sub)], dtype=torch.bool,
+                                 device=self.device)  # (n_sub - 1, b)  # fmt: skip
+            flip = torch.zeros(n_sub - 1, K, dtype=torch.bool, device=self.device)
+            flip[:, block] = masks
+            f_var = self.F.unsqueeze(2) ^ flip.view(1, 1, n_sub - 1, K)  # (C, N, n_sub - 1, K)
+            ll_var = self._marginal(
+                f_var.reshape(-1, K),
+                self.eta.unsqueeze(2).expand(C, N, n_sub - 1, K, K).reshape(-1, K, K),
+                self.loge.unsqueeze(2).expand(C, N, n_sub - 1, self.T, K).reshape(-1, self.T, K),
+                self.lengths.view(1, N, 1).expand(C, N, n_sub - 1).reshape(-1),
+            ).reshape(C, N, n_sub - 1)
+            table = torch.cat([self.ll.unsqueeze(-1), ll_var], -1)  # (C, N, n_sub): index = subset bit mask
+            state = torch.zeros(C, N, dtype=torch.long, device=self.device)
+            log_u = torch.log(self._rand(b, C, N))
+            n_own = self.F.sum(-1)  # (C, N)
+            for j, k in enumerate(block):
+                for i in torch.randperm(N, generator=self.gen, device=self.device).tolist():
+                    own = self.F[:, i, k]
+                    others = self.F[:, :, k].sum(1) - own.long()
+                    eligible = (others > 0) & ~(own & (n_own[:, i] == 1))
+                    log_odds = shared_log_odds(others.clamp_min(1).to(self.dtype), N, c_conc)
+                    cur = state[:, i]
+                    prop = cur ^ (1 << j)
+                    ll_cur = table[:, i].gather(-1, cur.unsqueeze(-1)).squeeze(-1)
+                    ll_new = table[:, i].gather(-1, prop.unsqueeze(-1)).squeeze(-1)
+                    log_a = ll_new - ll_cur + torch.where(own, -log_odds, log_odds)
+                    ok = eligible & (log_u[j, :, i] < log_a)
+                    self.accept["shared"][0] += int(ok.sum())
+                    self.accept["shared"][1] += int(eligible.sum())
+                    self.F[:, i, k] = own ^ ok
+                    state[:, i] = torch.where(ok, prop, cur)
+                    n_own[:, i] += torch.where(ok, torch.where(own, -1, 1), 0)
+            self.ll = table.gather(-1, state.unsqueeze(-1)).squeeze(-1)
+
+    def _windows(self, start: Tensor) -> tuple[Tensor, Tensor]:
+        """Window samples and mask for window starts (C, N): (C, N, Lmax, d), (C, N, Lmax, 1)."""
+        Lmax = int(self.window.max())
+        offs = torch.arange(Lmax, device=self.device)
+        idx = (start.unsqueeze(-1) + offs).clamp_max(self.T - 1)  # (C, N, Lmax)
+        mask = (offs < self.window.view(1, self.N, 1)).to(self.dtype).unsqueeze(-1).expand(self.C, self.N, Lmax, 1)
+        seq = torch.arange(self.N, device=self.device).view(1, self.N, 1)
+        chain = torch.arange(self.C, device=self.device).view(self.C, 1, 1)
+        return self.xc[chain, seq, idx], mask
+
+    def _window_posterior_all(self, start: Tensor) -> NIWPrior:
+        xw, mask = self._windows(start)
+        counts, sums, outer = sufficient_statistics(xw, mask)
+        return niw_posterior(self.prior, counts[..., 0], sums[..., 0, :], outer[..., 0, :, :])
+
+    def _log_window_scores(self, mean: Tensor, covariance: Tensor) -> Tensor:
+        """log r(W | theta_ci) over the window starts of every sequence: (C, N, T), -inf on invalid starts.
+
+        r weights a window by exp(mean log density of its samples under theta).
+        """
+        ll = gaussian_log_density(self.xc, mean.unsqueeze(2), covariance.unsqueeze(2))[..., 0]
+        csum = torch.cat([ll.new_zeros(self.C, self.N, 1), ll.cumsum(-1)], dim=-1)  # (C, N, T + 1)
+        starts = torch.arange(self.T, device=self.device)
+        end = (starts.view(1, -1) + self.window.view(-1, 1)).clamp_max(self.T)  # (N, T)
+        score = (csum.gather(-1, end.expand(self.C, -1, -1)) - csum[..., : self.T]) / self.window.view(1, -1, 1)
+        valid = starts.view(1, -1) <= (self.lengths - self.window).view(-1, 1)  # (N, T)
+        return torch.log_softmax(score.masked_fill(~valid, _NEG_INF), dim=-1)
+
+    def _birth_death(self) -> None:
+        """Reversible-jump birth or death of one unique feature in every (chain, sequence), all in parallel.
+
+        Moves of different sequences do not interact (a unique feature of sequence i is not owned by any other
+        sequence, and the IBP ratio of a unique birth, gamma c / ((c + N - 1)(u_i + 1)), involves row i only), so
+        they are proposed and accepted jointly.
+        """
+        C, N = self.C, self.N
+        self._grow(N)
+        K = self.F.shape[-1]
+        others = self.F.sum(1, keepdim=True) - self.F.long()  # (C, N, K)
+        unique = self.F & (others == 0)
+        n_unique = unique.sum(-1)
+        n_own = self.F.sum(-1)
+        birth = self._rand(C, N) < 0.5
+        death = ~birth & (n_unique > 0) & (n_own > 1)
+        active = birth | death
+        rate = unique_feature_rate(1.0, self.cfg.feature_concentration, N) * self.mass.view(C, 1)
+        n_start = (self.lengths - self.window + 1).to(self.dtype)  # (N,)
+        # birth: window W ~ uniform, theta* ~ q(. | W), one free slot per (c, i)
+        start_b = (self._rand(C, N) * n_start).floor().long()
+        post = self._window_posterior_all(start_b)
+        mp, sp = sample_niw(post, self.gen)
+        flat_prior = NIWPrior(self.prior.mean.expand(C, N, self.d), self.prior.kappa, self.prior.dof,
+                              self.prior.scale.expand(C, N, self.d, self.d))  # fmt: skip
+        m0, s0 = sample_niw(flat_prior, self.gen)
+        from_prior = self._rand(C, N) < self.cfg.birth_prior_mix
+        mean_b = torch.where(from_prior[..., None], m0, mp)
+        cov_b = torch.where(from_prior[..., None, None], s0, sp)
+        free = ~self.F.any(1)  # (C, K)
+        rank = free.long().cumsum(-1) - 1
+        target = torch.arange(N, device=self.device).view(1, N, 1)
+        slot_b = torch.argmax((free.unsqueeze(1) & (rank.unsqueeze(1) == target)).long(), -1)  # (C, N)
+        # death: a unique feature chosen uniformly, auxiliary window W ~ r(. | theta)
+        pick = torch.rand(C, N, K, generator=self.gen, dtype=self.dtype, device=self.device).masked_fill(~unique, -1.0)
+        slot_d = torch.argmax(pick, -1)
+        cidx = torch.arange(C, device=self.device).view(C, 1)
+        mean_d, cov_d = self.mean[cidx, slot_d], self.cov[cidx, slot_d]
+        # one set of window scores for the parameter each move is about
+        mean_t = torch.where(birth[..., None], mean_b, mean_d)
+        cov_t = torch.where(birth[..., None, None], cov_b, cov_d)
+        log_r_all = self._log_window_scores(mean_t, cov_t)  # (C, N, T)
+        start_d = torch.multinomial(torch.exp(log_r_all).reshape(C * N, self.T), 1, generator=self.gen).reshape(C, N)
+        start_t = torch.where(birth, start_b, start_d)
+        log_r = log_r_all.gather(-1, start_t.unsqueeze(-1)).squeeze(-1)
+        post_t = self._window_posterior_all(start_t)
+        eps = self.cfg.birth_prior_mix
+        log_q = torch.logaddexp(
+            math.log1p(-eps) + niw_log_density(mean_t, cov_t, post_t), math.log(eps) + niw_log_density(mean_t, cov_t, self.prior)
+        )
+        log_prior_theta = niw_log_density(mean_t, cov_t, self.prior)
+        n_big = torch.where(birth, n_unique + 1, n_unique).clamp_min(1).to(self.dtype)
+        log_extra = torch.log(rate) - torch.log(n_big) + log_prior_theta - log_q + log_r + torch.log(n_start)
+        # proposed feature rows and emission columns
+        slot = torch.where(birth, slot_b, slot_d)
+        f_new = self.F.clone()
+        f_new.scatter_(-1, slot.unsqueeze(-1), birth.unsqueeze(-1))
+        le_b = gaussian_log_density(self.xc, mean_b.unsqueeze(2), cov_b.unsqueeze(2))  # (C, N, T, 1)
+        le_new = self.loge.clone()
+        le_new.scatter_(-1, slot_b.view(C, N, 1, 1).expand(C, N, self.T, 1), le_b)
+        ll_new = self._marginal(
+            f_new.reshape(C * N, K), self.eta.reshape(C * N, K, K), le_new.reshape(C * N, self.T, K), self.lengths.repeat(C)
+        ).reshape(C, N)
+        log_a = ll_new - self.ll + torch.where(birth, log_extra, -log_extra)
+        ok = active & (torch.log(self._rand(C, N)) < log_a)
+        for name, mask in (("birth", birth), ("death", death)):
+            self.accept[name][0] += int((ok & mask).sum())
+            self.accept[name][1] += int(mask.sum())
+        if not bool(ok.any()):
+            return
+        self.F = torch.where(ok.unsqueeze(-1), f_new, self.F)
+        self.ll = torch.where(ok, ll_new, self.ll)
+        born = ok & birth
+        if bool(born.any()):
+            c_idx, i_idx = torch.nonzero(born, as_tuple=True)
+            sb = slot_b[c_idx, i_idx]
+            self.mean[c_idx, sb] = mean_b[c_idx, i_idx]
+            self.cov[c_idx, sb] = cov_b[c_idx, i_idx]
+            self.loge = self._emission(self.mean, self.cov)
+
+    def _sample_states(self) -> None:
+        C, N, K = self.F.shape
+        f = self.F.reshape(C * N, K)
+        le = self.loge.reshape(C * N, self.T, K).masked_fill(~f.unsqueeze(1), _NEG_INF)
+        init = initial_distribution(f, self.dtype)
+        P = transition_matrix(self.eta.reshape(C * N, K, K), f)
+        lengths = self.lengths.repeat(C)
+        filtered, _ = forward_filter(le, init, P, lengths)
+        self.s = backward_sample(filtered, P, lengths, self.gen).reshape(C, N, self.T)
+
+    def _sample_parameters(self) -> None:
+        C, N, K = self.F.shape
+        onehot = torch.nn.functional.one_hot(self.s, K).to(self.dtype) * self.valid.unsqueeze(-1).to(self.dtype)
+        counts, sums, outer = sufficient_statistics(
+            self.xc.reshape(C, N * self.T, self.d), onehot.reshape(C, N * self.T, K)
+        )
+        post = niw_posterior(self.prior, counts, sums, outer)
+        self.mean, self.cov = sample_niw(post, self.gen)
+        trans = transition_counts(self.s, self.lengths.expand(C, N), K).to(self.dtype)
+        self.eta = sample_transition_weights_posterior(
+            trans, self.F, self.alpha.view(C, 1, 1, 1), self.kappa.view(C, 1, 1, 1), self.gen
+        )
+        self.loge = self._emission(self.mean, self.cov)
+        self.ll = self._marginal_all()
+
+    def _sample_hyperparameters(self) -> None:
+        C, N, K = self.F.shape
+        c_conc = self.cfg.feature_concentration
+        # gamma | F ~ Gamma(1 + K+, 1 + sum_n c / (c + n - 1))  (Gamma(1, 1) prior)
+        k_plus = (self.F.any(1)).sum(-1).to(self.dtype)
+        harmonic = sum(c_conc / (c_conc + j) for j in range(N))
+        self.mass = sample_gamma(1.0 + k_plus, self.gen) / (1.0 + harmonic)
+        # alpha, kappa | pi: random-walk Metropolis on the log, Gamma(1, 0.01) priors (vague)
+        P = transition_matrix(self.eta, self.F)
+        for name in ("alpha", "kappa"):
+            cur = getattr(self, name)
+            prop = cur * torch.exp(0.3 * torch.randn(C, generator=self.gen, dtype=self.dtype, device=self.device))
+            def log_post(a_val: Tensor, k_val: Tensor) -> Tensor:
+                out = torch.stack([
+                    dirichlet_log_density_rows(P[c], self.F[c], float(a_val[c]), float(k_val[c])).sum() for c in range(C)
+                ])
+                return out - 0.01 * a_val - 0.01 * k_val
+            a_cur, k_cur = self.alpha, self.kappa
+            a_new, k_new = (prop, k_cur) if name == "alpha" else (a_cur, prop)
+            log_a = log_post(a_new, k_new) - log_post(a_cur, k_cur) + torch.log(prop) - torch.log(cur)
+            ok = torch.log(self._rand(C)) < log_a
+            setattr(self, name, torch.where(ok, prop, cur))
+
+    def _joint_log_prob(self) -> Tensor:
+        C, N, K = self.F.shape
+        f = self.F
+        le = torch.gather(self.loge, -1, self.s.unsqueeze(-1)).squeeze(-1)  # (C, N, T)
+        lp = (le * self.valid).sum((-1, -2))
+        P = transition_matrix(self.eta, f)  # (C, N, K, K)
+        init = initial_distribution(f, self.dtype)
+        lp = lp + torch.log(torch.gather(init, -1, self.s[..., :1]).squeeze(-1)).sum(-1)
+        prev, nxt = self.s[..., :-1], self.s[..., 1:]
+        trans = P.gather(-2, prev.unsqueeze(-1).expand(C, N, self.T - 1, K)).gather(-1, nxt.unsqueeze(-1)).squeeze(-1)
+        lp = lp + (torch.log(trans.clamp_min(1e-300)) * self.valid[:, 1:]).sum((-1, -2))
+        owned = f.any(1)  # (C, K)
+        lp = lp + (niw_log_density(self.mean, self.cov, self.prior) * owned).sum(-1)
+        for c in range(C):
+            lp[c] = lp[c] + ibp_log_prior(f[c], self.mass[c], self.cfg.feature_concentration).to(self.dtype)
+            lp[c] = lp[c] + dirichlet_log_density_rows(P[c], f[c], float(self.alpha[c]), float(self.kappa[c])).sum()
+        return lp
+
+    # ------------------------------------------------------------------ driver
+    def sample(self) -> SamplerResult:
+        cfg = self.cfg
+        n_iter = cfg.n_iterations
+        trace = torch.empty(self.C, n_iter, dtype=self.dtype)
+        n_feat = torch.empty(self.C, n_iter, dtype=torch.long)
+        start_keep = int(cfg.burn_in * n_iter)
+        best_lp = torch.full((self.C,), _NEG_INF, dtype=self.dtype, device=self.device)
+        best: list[dict | None] = [None] * self.C
+        iterator = range(n_iter)
+        if cfg.progress:
+            from tqdm.auto import tqdm
+
+            iterator = tqdm(iterator, desc="BP-GM-HMM sweeps", leave=False)
+        for it in iterator:
+            self._compact()
+            self._shared_moves()
+            self._birth_death()
+            self._compact()  # drop the free slots the births did not use before the O(K^2) steps
+            self._sample_states()
+            self._sample_parameters()
+            if cfg.resample_hyperparameters:
+                self._sample_hyperparameters()
+            lp = self._joint_log_prob()
+            trace[:, it] = lp.cpu()
+            n_feat[:, it] = self.F.any(1).sum(-1).cpu()
+            if it >= start_keep:
+                better = lp > best_lp
+                for c in torch.nonzero(better).reshape(-1).tolist():
+                    best_lp[c] = lp[c]
+                    best[c] = self._snapshot(c)
+        c_best = int(torch.argmax(best_lp))
+        snap = best[c_best]
+        assert snap is not None
+        acceptance = {k: (v[0] / v[1] if v[1] else float("nan")) for k, v in self.accept.items()}
+        return SamplerResult(
+            states=snap["states"],
+            lengths=self.lengths.clone(),
+            features=snap["features"],
+            mean=snap["mean"],
+            covariance=snap["covariance"],
+            log_prob=float(best_lp[c_best]),
+            trace=trace,
+            n_features_trace=n_feat,
+            chain=c_best,
+            hyperparameters=snap["hyper"],
+            acceptance=acceptance,
+        )
+
+    def _snapshot(self, c: int) -> dict:
+        """Copy of chain c with its slots relabelled to the features it owns (in order of first use)."""
+        owned = self.F[c].any(0)
+        keep = torch.nonzero(owned).reshape(-1)
+        remap = torch.full((self.F.shape[-1],), -1, dtype=torch.long, device=self.device)
+        remap[keep] = torch.arange(keep.numel(), device=self.device)
+        states = remap[self.s[c]]
+        return {
+            "states": states,
+            "features": self.F[c][:, keep].clone(),
+            "mean": self.mean[c, keep].clone(),
+            "covariance": self.cov[c, keep].clone(),
+            "hyper": {
+                "feature_mass": float(self.mass[c]),
+                "transition_concentration": float(self.alpha[c]),
+                "stickiness": float(self.kappa[c]),
+            },
+        }

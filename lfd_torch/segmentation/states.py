@@ -1,0 +1,158 @@
+"""Hidden state sequences: forward algorithm and forward filtering / backward sampling (FFBS).
+
+Notation:
+    B  sequences in a batch (chains x demonstrations, padded)
+    T  padded length; lengths (B,) valid samples per sequence (>= 1)
+    K  states
+    log_emission  (B, T, K) log p(x_t | s_t = k); -inf marks states a sequence cannot use
+    initial       (B, K)    p(s_0 = k)
+    transition    (B, K, K) p(s_t = k | s_{t-1} = j), row-stochastic on the usable states
+
+The forward recursion is normalised at every step: a probability vector is carried with its log normaliser,
+which is the log-space forward algorithm with one ``exp`` per sample instead of a ``logsumexp`` over K^2 terms
+per step. Padding steps (t >= length) use a neutral emission (e = 1), so with row-stochastic transitions they
+do not change the likelihood. Backward sampling is parallel over
+time (a doubling scan of inverse-CDF maps).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from lfd_torch.errors import ShapeMismatchError
+
+__all__ = ["forward_log_likelihood", "forward_filter", "backward_sample"]
+
+# The likelihood-only recursion normalises every few steps: each step shrinks the vector by at most the
+# one-step predictive probability of the scaled emission (max_k e_t = 1), so a handful of steps cannot underflow
+# float64 unless the model gives a sample probability below ~1e-75 relative to its best state.
+_RENORM_EVERY = 4
+
+
+def _check(log_emission: Tensor, initial: Tensor, transition: Tensor, lengths: Tensor) -> None:
+    if log_emission.ndim != 3:
+        raise ShapeMismatchError(f"log_emission must be (B, T, K), got {tuple(log_emission.shape)}")
+    B, T, K = log_emission.shape
+    if initial.shape != (B, K) or transition.shape != (B, K, K) or lengths.shape != (B,):
+        raise ShapeMismatchError(
+            f"initial {tuple(initial.shape)}, transition {tuple(transition.shape)}, lengths {tuple(lengths.shape)} "
+            f"do not match log_emission (B, T, K) = {(B, T, K)}"
+        )
+
+
+def _scaled_emission(log_emission: Tensor, lengths: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(e, m, valid): e = exp(l - m) with m_t = max_k l_t (0 where no state is usable or on padding)."""
+    T = log_emission.shape[1]
+    valid = torch.arange(T, device=log_emission.device).unsqueeze(0) < lengths.unsqueeze(1)  # (B, T)
+    m = log_emission.amax(-1)
+    m = torch.where(torch.isfinite(m) & valid, m, torch.zeros_like(m))
+    e = torch.exp(log_emission - m.unsqueeze(-1))
+    e = torch.where(valid.unsqueeze(-1), e, torch.ones_like(e))  # padding: neutral
+    return e, m, valid
+
+
+def _forward(
+    log_emission: Tensor, initial: Tensor, transition: Tensor, lengths: Tensor, keep: bool
+) -> tuple[Tensor | None, Tensor]:
+    """Normalised forward recursion alpha_t = normalise((alpha_{t-1} transition) * e_t); returns (filtered, log lik)."""
+    _check(log_emission, initial, transition, lengths)
+    B, T, K = log_emission.shape
+    e, m, valid = _scaled_emission(log_emission, lengths)
+    alpha = initial * e[:, 0]
+    norm = alpha.sum(-1, keepdim=True)
+    norms = [norm]
+    alpha = alpha / norm
+    out = [alpha]
+    renorm_every = 1 if keep else _RENORM_EVERY
+    for t in range(1, T):
+        alpha = torch.bmm(alpha.unsqueeze(1), transition).squeeze(1).mul_(e[:, t])
+        if t % renorm_every == 0 or t == T - 1:
+            norm = alpha.sum(-1, keepdim=True)
+            alpha = alpha / norm
+            norms.append(norm)
+        else:
+            norms.append(torch.ones_like(norm))
+        if keep:
+            out.append(alpha)
+    log_norm = torch.log(torch.cat(norms, 1))
+    # padding steps have e = 1 and row-stochastic transitions, so they leave the total mass (and log_norm) unchanged
+    log_lik = log_norm.sum(1) + m.sum(1)
+    if not keep:
+        return None, log_lik
+    filtered = torch.stack(out, 1)
+    last = (lengths - 1).clamp_min(0)
+    index = torch.minimum(torch.arange(T, device=e.device).unsqueeze(0), last.unsqueeze(1))
+    return filtered.gather(1, index.unsqueeze(-1).expand(B, T, K)), log_lik
+
+
+def forward_log_likelihood(log_emission: Tensor, initial: Tensor, transition: Tensor, lengths: Tensor) -> Tensor:
+    """log p(x_{0:T_i-1}) with the states summed out, for every sequence (forward algorithm).
+
+    Args:
+        log_emission: (B, T, K).
+        initial: (B, K).
+        transition: (B, K, K).
+        lengths: (B,) long, >= 1.
+
+    Returns:
+        (B,) log likelihoods (-inf when no usable state explains a sample).
+    """
+    return _forward(log_emission, initial, transition, lengths, keep=False)[1]
+
+
+def forward_filter(
+    log_emission: Tensor, initial: Tensor, transition: Tensor, lengths: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Filtered state probabilities p(s_t | x_{0:t}) and the log likelihood.
+
+    Args:
+        log_emission: (B, T, K).
+        initial: (B, K).
+        transition: (B, K, K).
+        lengths: (B,) long, >= 1.
+
+    Returns:
+        filtered (B, T, K) (rows of padding repeat the last valid one) and log likelihood (B,).
+    """
+    filtered, log_lik = _forward(log_emission, initial, transition, lengths, keep=True)
+    assert filtered is not None
+    return filtered, log_lik
+
+
+def backward_sample(filtered: Tensor, transition: Tensor, lengths: Tensor, generator: torch.Generator) -> Tensor:
+    """Draw state sequences from p(s_{0:T-1} | x) given filtered probabilities (blocked Gibbs step).
+
+    s_{T_i-1} ~ filtered_{T_i-1}; s_t ~ filtered_t(j) transition(j, s_{t+1}) for t < T_i - 1. With one uniform
+    u_t per step, every step is a map g_t: s_{t+1} -> s_t (inverse CDF); the maps are composed by a parallel
+    doubling scan, so the draw takes ceil(log2 T) gathers instead of T sequential steps.
+
+    Args:
+        filtered: (B, T, K) from :func:`forward_filter`.
+        transition: (B, K, K).
+        lengths: (B,) long.
+        generator: source of randomness.
+
+    Returns:
+        (B, T) long; padding repeats the last valid state.
+    """
+    B, T, K = filtered.shape
+    last = (lengths - 1).clamp_min(0)
+    rows = torch.arange(B, device=filtered.device)
+    uniforms = torch.rand(B, T + 1, generator=generator, dtype=filtered.dtype, device=filtered.device)
+    # terminal draw s_{T_i - 1} ~ filtered_{T_i - 1}
+    end = filtered[rows, last]
+    cdf_end = end.cumsum(-1)
+    s_end = (cdf_end <= (uniforms[:, T] * cdf_end[:, -1]).unsqueeze(-1)).sum(-1).clamp_max(K - 1)
+    # g[b, t, j] = inverse CDF of filtered_t(i) transition(i, j) over i at u_t
+    weights = filtered.unsqueeze(-1) * transition.unsqueeze(1)  # (B, T, K_i, K_j)
+    cdf = weights.cumsum(-2)
+    g = (cdf <= (uniforms[:, :T, None, None] * cdf[:, :, -1:, :])).sum(-2).clamp_max(K - 1)  # (B, T, K)
+    terminal = torch.arange(T, device=filtered.device).unsqueeze(0) >= last.unsqueeze(1)  # (B, T)
+    g = torch.where(terminal.unsqueeze(-1), s_end[:, None, None].expand(B, T, K), g)
+    step = 1
+    while step < T:
+        composed = g[:, :-step].gather(2, g[:, step:])
+        g = torch.cat([composed, g[:, T - step :]], 1)
+        step *= 2
+    return g[:, :, 0]

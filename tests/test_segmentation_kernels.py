@@ -1,0 +1,244 @@
+"""Kernels of the BP-GM-HMM against independent references (enumeration, closed forms, scipy, Monte Carlo)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy import stats
+
+from lfd_torch.segmentation.emissions import (
+    NIWPrior,
+    gaussian_log_density,
+    niw_log_density,
+    niw_log_marginal_likelihood,
+    niw_posterior,
+    niw_prior_from_data,
+    sample_gamma,
+    sample_niw,
+    sufficient_statistics,
+)
+from lfd_torch.segmentation.features import ibp_log_prior, sample_ibp, shared_log_odds
+from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood
+from lfd_torch.segmentation.transitions import (
+    sample_transition_weights_posterior,
+    transition_counts,
+    transition_matrix,
+)
+
+F64 = torch.float64
+
+
+def _tiny_hmm(generator: torch.Generator, B: int = 3, T: int = 5, K: int = 3):
+    le = torch.randn(B, T, K, generator=generator, dtype=F64) * 3.0
+    init = torch.rand(B, K, generator=generator, dtype=F64)
+    P = torch.rand(B, K, K, generator=generator, dtype=F64)
+    # sequence 1 cannot use state K-1 (not owned), as in the sampler
+    le[1, :, K - 1] = -math.inf
+    init[1, K - 1] = 0.0
+    P[1, :, K - 1] = 0.0
+    P[1, K - 1, :] = 0.0
+    init = init / init.sum(-1, keepdim=True)
+    P = P / P.sum(-1, keepdim=True).clamp_min(1e-300)
+    lengths = torch.tensor([T, T - 1, 1][:B])
+    return le, init, P, lengths
+
+
+def _enumerate(le, init, P, lengths):
+    """Brute force over all K^T state sequences: log evidence, filtered marginals, posterior over paths."""
+    B, T, K = le.shape
+    out_ll, out_filt, out_post = [], [], []
+    for b in range(B):
+        L = int(lengths[b])
+        joint = {}
+        for seq in itertools.product(range(K), repeat=L):
+            p = float(init[b, seq[0]]) * math.exp(float(le[b, 0, seq[0]]))
+            for t in range(1, L):
+                p *= float(P[b, seq[t - 1], seq[t]]) * math.exp(float(le[b, t, seq[t]]))
+            joint[seq] = p
+        total = sum(joint.values())
+        out_ll.append(math.log(total))
+        out_post.append({k: v / total for k, v in joint.items()})
+        filt = np.zeros((L, K))
+        for t in range(L):  # p(s_t | x_0..t): enumerate prefixes
+            pref = {}
+            for seq in itertools.product(range(K), repeat=t + 1):
+                p = float(init[b, seq[0]]) * math.exp(float(le[b, 0, seq[0]]))
+                for u in range(1, t + 1):
+                    p *= float(P[b, seq[u - 1], seq[u]]) * math.exp(float(le[b, u, seq[u]]))
+                pref[seq] = p
+            z = sum(pref.values())
+            for seq, p in pref.items():
+                filt[t, seq[-1]] += p / z
+        out_filt.append(filt)
+    return out_ll, out_filt, out_post
+
+
+def test_forward_likelihood_equals_enumeration(generator):
+    le, init, P, lengths = _tiny_hmm(generator)
+    ref_ll, ref_filt, _ = _enumerate(le, init, P, lengths)
+    torch.testing.assert_close(forward_log_likelihood(le, init, P, lengths), torch.tensor(ref_ll, dtype=F64))
+    filtered, ll = forward_filter(le, init, P, lengths)
+    torch.testing.assert_close(ll, torch.tensor(ref_ll, dtype=F64))
+    for b in range(le.shape[0]):
+        L = int(lengths[b])
+        torch.testing.assert_close(filtered[b, :L], torch.tensor(ref_filt[b]), atol=1e-10, rtol=1e-9)
+        # padding repeats the last valid row
+        torch.testing.assert_close(filtered[b, L:], filtered[b, L - 1 : L].expand(le.shape[1] - L, -1))
+
+
+def test_forward_likelihood_long_sequence_no_underflow(generator):
+    # 400 steps of strongly informative emissions: a naive product underflows, the normalised recursion must not.
+    le, init, P, lengths = _tiny_hmm(generator, B=2, T=400, K=3)
+    le = le * 20.0
+    ll = forward_log_likelihood(le, init, P, torch.tensor([400, 399]))
+    _, ll2 = forward_filter(le, init, P, torch.tensor([400, 399]))
+    assert torch.isfinite(ll).all()
+    torch.testing.assert_close(ll, ll2)
+
+
+def test_backward_sampling_matches_posterior(generator):
+    le, init, P, lengths = _tiny_hmm(generator, B=3, T=4, K=3)
+    _, _, ref_post = _enumerate(le, init, P, lengths)
+    filtered, _ = forward_filter(le, init, P, lengths)
+    n = 20000
+    draws = backward_sample(filtered.repeat(n, 1, 1), P.repeat(n, 1, 1), lengths.repeat(n), generator)
+    draws = draws.reshape(n, 3, -1)
+    for b in range(3):
+        L = int(lengths[b])
+        counts: dict[tuple[int, ...], int] = {}
+        for row in draws[:, b, :L].tolist():
+            counts[tuple(row)] = counts.get(tuple(row), 0) + 1
+        for path, p in ref_post[b].items():
+            # 5 binomial standard errors
+            assert abs(counts.get(path, 0) / n - p) <= 5.0 * math.sqrt(p * (1 - p) / n) + 1e-9, (b, path)
+        assert (draws[:, b, L:] == draws[:, b, L - 1 : L]).all()
+
+
+def _reference_posterior(m0, k0, nu0, psi0, x):
+    """Murphy (2007) eqs. 250-254 written out in numpy."""
+    n = x.shape[0]
+    xbar = x.mean(0)
+    S = (x - xbar).T @ (x - xbar)
+    kn = k0 + n
+    mn = (k0 * m0 + n * xbar) / kn
+    nun = nu0 + n
+    psin = psi0 + S + (k0 * n / kn) * np.outer(xbar - m0, xbar - m0)
+    return mn, kn, nun, psin
+
+
+def test_niw_posterior_closed_form(generator):
+    x = torch.randn(40, 3, generator=generator, dtype=F64) * torch.tensor([1.0, 2.0, 0.5], dtype=F64) + 1.0
+    prior = niw_prior_from_data(x, covariance_scale=0.3, mean_pseudo_count=0.5, extra_dof=2.0)
+    labels = torch.randint(2, (40,), generator=generator)
+    onehot = torch.nn.functional.one_hot(labels, 2).to(F64)
+    post = niw_posterior(prior, *sufficient_statistics(x, onehot))
+    for k in range(2):
+        xk = x[labels == k].numpy()
+        mn, kn, nun, psin = _reference_posterior(prior.mean.numpy(), float(prior.kappa), float(prior.dof), prior.scale.numpy(), xk)
+        np.testing.assert_allclose(post.mean[k].numpy(), mn, rtol=1e-12)
+        np.testing.assert_allclose(float(post.kappa[k]), kn)
+        np.testing.assert_allclose(float(post.dof[k]), nun)
+        np.testing.assert_allclose(post.scale[k].numpy(), psin, rtol=1e-10, atol=1e-12)
+
+
+def test_niw_density_matches_scipy(generator):
+    x = torch.randn(30, 2, generator=generator, dtype=F64)
+    prior = niw_prior_from_data(x, covariance_scale=0.2, extra_dof=3.0)
+    for _ in range(3):
+        mu, S = sample_niw(prior, generator)
+        ref = stats.invwishart(df=float(prior.dof), scale=prior.scale.numpy()).logpdf(S.numpy()) + stats.multivariate_normal(
+            prior.mean.numpy(), S.numpy() / float(prior.kappa)
+        ).logpdf(mu.numpy())
+        assert float(niw_log_density(mu, S, prior)) == pytest.approx(ref, rel=1e-10)
+        xs = x[:5]
+        ref_g = stats.multivariate_normal(mu.numpy(), S.numpy()).logpdf(xs.numpy())
+        np.testing.assert_allclose(gaussian_log_density(xs, mu[None], S[None])[:, 0].numpy(), ref_g, rtol=1e-10)
+
+
+def test_niw_marginal_likelihood_candidate_identity(generator):
+    # Chib's identity p(X) = p(X | theta) p(theta) / p(theta | X) holds for every theta.
+    x = torch.randn(7, 2, generator=generator, dtype=F64)
+    prior = niw_prior_from_data(torch.randn(50, 2, generator=generator, dtype=F64), covariance_scale=0.5)
+    stats_ = sufficient_statistics(x, torch.ones(7, 1, dtype=F64))
+    post = niw_posterior(prior, *stats_)
+    post1 = NIWPrior(post.mean[0], post.kappa[0], post.dof[0], post.scale[0])
+    for _ in range(3):
+        mu, S = sample_niw(post1, generator)
+        chib = gaussian_log_density(x, mu[None], S[None]).sum() + niw_log_density(mu, S, prior) - niw_log_density(mu, S, post1)
+        torch.testing.assert_close(niw_log_marginal_likelihood(prior, *stats_)[0], chib)
+
+
+def test_sample_niw_moments(generator):
+    prior = NIWPrior(
+        mean=torch.tensor([1.0, -2.0], dtype=F64), kappa=torch.tensor(2.0, dtype=F64), dof=torch.tensor(7.0, dtype=F64),
+        scale=torch.tensor([[2.0, 0.5], [0.5, 1.0]], dtype=F64),
+    )  # fmt: skip
+    n = 40000
+    batch = NIWPrior(prior.mean.expand(n, 2), prior.kappa, prior.dof, prior.scale.expand(n, 2, 2))
+    mu, S = sample_niw(batch, generator)
+    torch.testing.assert_close(S.mean(0), prior.scale / (7.0 - 2 - 1), rtol=0.03, atol=0.01)
+    torch.testing.assert_close(mu.mean(0), prior.mean, rtol=0, atol=0.02)
+    # Cov(mu) = E[Sigma] / kappa
+    torch.testing.assert_close(torch.cov(mu.T), prior.scale / 4.0 / 2.0, rtol=0.05, atol=0.01)
+
+
+@pytest.mark.parametrize("shape", [0.3, 1.0, 4.5])
+def test_sample_gamma_moments(generator, shape):
+    a = torch.full((50000,), shape, dtype=F64)
+    g = sample_gamma(a, generator)
+    assert float(g.mean()) == pytest.approx(shape, rel=0.03)
+    assert float(g.var()) == pytest.approx(shape, rel=0.06)
+    assert stats.kstest(g.numpy(), stats.gamma(shape).cdf).pvalue > 1e-3
+
+
+def test_transition_posterior_mean(generator):
+    K = 3
+    features = torch.tensor([True, False, True])
+    counts = torch.zeros(K, K, dtype=F64)
+    counts[0, 0], counts[0, 2], counts[2, 2] = 5.0, 2.0, 7.0
+    n = 20000
+    eta = sample_transition_weights_posterior(counts.expand(n, K, K), features.expand(n, K), 1.0, 3.0, generator)
+    pi = transition_matrix(eta, features.expand(n, K))
+    # Dirichlet posterior means on the owned block {0, 2}
+    a = torch.tensor([[1.0 + 3.0 + 5.0, 1.0 + 2.0], [1.0, 1.0 + 3.0 + 7.0]], dtype=F64)
+    ref = a / a.sum(-1, keepdim=True)
+    got = pi.mean(0)[[0, 2]][:, [0, 2]]
+    torch.testing.assert_close(got, ref, atol=0.01, rtol=0)
+    assert (pi[:, :, 1] == 0).all() and (pi[:, 1, :] == 0).all()
+    # weights outside the owned block keep their prior Gamma(alpha + kappa delta) law
+    assert float(eta[:, 1, 1].mean()) == pytest.approx(4.0, rel=0.05)
+
+
+def test_transition_counts_respect_lengths():
+    s = torch.tensor([[0, 0, 1, 1, 2], [2, 1, 1, 0, 0]])
+    c = transition_counts(s, torch.tensor([5, 3]), 3)
+    ref0 = torch.zeros(3, 3, dtype=F64)
+    ref0[0, 0], ref0[0, 1], ref0[1, 1], ref0[1, 2] = 1, 1, 1, 1
+    ref1 = torch.zeros(3, 3, dtype=F64)
+    ref1[2, 1], ref1[1, 1] = 1, 1
+    torch.testing.assert_close(c, torch.stack([ref0, ref1]))
+
+
+def test_ibp_prior_predictive(generator):
+    # Row i owns Poisson(gamma) features marginally; K+ has mean gamma * sum_n c / (c + n - 1).
+    mass, conc, N = 2.0, 1.5, 4
+    draws = [sample_ibp(N, mass, conc, generator) for _ in range(3000)]
+    per_row = torch.tensor([float(f.sum(1).float().mean()) for f in draws])
+    k_plus = torch.tensor([float(f.shape[1]) for f in draws])
+    assert float(per_row.mean()) == pytest.approx(mass, rel=0.05)
+    assert float(k_plus.mean()) == pytest.approx(mass * sum(conc / (conc + n) for n in range(N)), rel=0.05)
+    # the closed-form log prior of the equivalence class is consistent with the sequential draw for N = 1:
+    # K ~ Poisson(gamma) and [F] is determined by K, so p([F]) = Poisson(K; gamma)
+    one = torch.ones(1, 3, dtype=torch.bool)
+    assert float(ibp_log_prior(one, mass, conc)) == pytest.approx(stats.poisson(mass).logpmf(3), rel=1e-10)
+
+
+def test_shared_log_odds_matches_ibp_conditional():
+    m = torch.tensor([1.0, 2.0, 3.0], dtype=F64)
+    N, c = 4, 1.5
+    p = m / (c + N - 1)
+    torch.testing.assert_close(shared_log_odds(m, N, c), torch.log(p / (1 - p)))
