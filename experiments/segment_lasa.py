@@ -2,9 +2,11 @@
 
 No number of steps is given. Demonstrations that start in different places follow different routes (LASA
 Multi_Models mixes 2-3 routes), so each data set is first split into routes by its start points
-(``group_by_start``) and every route is segmented on its own. For every route the table lists, per step m: the attractor g_m (mean end point),
-the HMM states of its subtask space A_m, the mean start/end sample and the mean fraction of the demonstration it
-covers, the number of steps, the sampler time and the step counts each demonstration had before the consensus.
+(``group_by_start``) and every route is segmented on its own. For every route the table lists, per step m: the
+attractor g_m (mean end point of step m; the last one is the data set's attractor), the HMM states of its subtask
+space A_m, the mean start/end sample and the mean fraction of the demonstration it covers, the number of steps, the
+sampler time, the step counts each demonstration had before the consensus, the demonstrations that were forced to
+the consensus count (``demo:own_count``) and those that had to be cut evenly.
 Figures show each demonstration coloured by step over the regions where p(x | A_m) is the largest step density.
 
     python experiments/segment_lasa.py
@@ -101,6 +103,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                     "trajectory": int(step_row["step"]), "demos": " ".join(map(str, members)), "n_steps": seg.n_steps,
                     "dim": demos.dim, "seconds": seconds,
                     "counts_before_consensus": " ".join(f"{k}:{v}" for k, v in sorted(counts.items())),
+                    "forced_to_consensus": " ".join(
+                        f"{members[i]}:{c}" for i, c in sorted(seg.info.get("forced_to_consensus", {}).items())
+                    ),
+                    "equal_cut_fallback": " ".join(str(members[i]) for i in seg.info.get("equal_cut_fallback", [])),
                 }  # fmt: skip
                 row.update(step_row)
                 rows.append(row)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import pytest
@@ -11,18 +12,19 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from lfd_torch.data import Demos
-from lfd_torch.errors import NonFiniteError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
 from lfd_torch.segmentation import (
     BetaProcessHMMSampler,
     BPGMHMMSegmenter,
     FixedSegmenter,
     NoSegmenter,
     Segmentation,
+    SegmentationWarning,
     multi_step_demos,
     runs,
     segment,
 )
-from lfd_torch.segmentation.segmentation import _absorb_short, _best_split, _steps_from_bounds
+from lfd_torch.segmentation.segmentation import _absorb_short, _best_split, _consensus, _steps_from_bounds
 from conftest import requires_cuda
 
 F64 = torch.float64
@@ -174,7 +176,7 @@ def test_no_segmenter_single_step(generator):
     syn = multi_step_demos(generator, n_demos=2, n_steps=2, samples_per_step=20)
     seg = NoSegmenter()(syn.demos)
     assert seg.n_steps == 1
-    torch.testing.assert_close(seg.attractors[0], syn.demos.end_points.mean(0))
+    torch.testing.assert_close(seg.attractors[0], syn.demos.attractor)  # the single step ends at the task goal
     assert torch.isinf(seg.other_log_density(torch.zeros(4, 2, dtype=F64))).all()
     assert len(seg.split(syn.demos)) == 1
 
@@ -292,3 +294,103 @@ def test_segment_on_cuda():
     seg = segment(demos, generator=torch.Generator(device="cuda").manual_seed(0), **FAST)
     assert seg.n_steps == 3 and seg.attractors.device.type == "cuda"
     assert seg.log_density(demos.positions).shape == (*demos.positions.shape[:2], 3)
+    assert seg.boundaries.device.type == "cuda" and seg.labels[0].device.type == "cuda"
+    parts = seg.split(demos, end_at_attractor=True)
+    assert parts[-1].positions.device.type == "cuda"
+    torch.testing.assert_close(parts[-1].attractor, demos.attractor)
+
+
+# ---------------------------------------------------------------------------------------------- review fixes
+def test_one_dimensional_data_raise_a_typed_error(generator):
+    # the segment-level line model needs d >= 2 (every 1-D path is a line): a typed error, not ZeroDivisionError
+    t = torch.linspace(0, 1, 60, dtype=F64)
+    seqs = [torch.cat([t, 1 + 0 * t, 1 - t]).unsqueeze(-1) + 0.01 * torch.randn(180, 1, generator=generator, dtype=F64)]
+    with pytest.raises(InvalidArgumentError, match="d >= 2"):
+        segment(seqs, generator=generator, n_iterations=2, n_chains=1)
+    # the segmenters without line stages accept 1-D data
+    seg = FixedSegmenter([1 / 3, 2 / 3])(seqs)
+    assert seg.n_steps == 3 and seg.dim == 1
+    assert NoSegmenter()(seqs).n_steps == 1
+
+
+def test_last_attractor_is_the_task_goal_and_pieces_can_end_at_rest(generator):
+    syn = multi_step_demos(generator, n_demos=3, n_steps=3, samples_per_step=50, profile="constant")
+    goal = syn.waypoints[-1]
+    ends = torch.stack([s[-1] for s in syn.demos.sequences()])
+    assert float((ends.mean(0) - goal).norm()) > 1e-4  # noisy end points: their mean is not the goal
+    seg = segment(syn.demos, generator=generator, **FAST)
+    torch.testing.assert_close(seg.attractors[-1], goal)
+    # from a list of tensors (no attractor given) the goal is the mean end point, as Demos defines it
+    seg_list = segment(syn.demos.sequences(), generator=torch.Generator().manual_seed(0), **FAST)
+    torch.testing.assert_close(seg_list.attractors[-1], ends.mean(0))
+    plain = seg.split(syn.demos)
+    rest = seg.split(syn.demos, end_at_attractor=True)
+    for m, (p, r) in enumerate(zip(plain, rest)):
+        torch.testing.assert_close(r.lengths, p.lengths + 1)
+        for i in range(p.n_demos):
+            L = int(p.lengths[i])
+            torch.testing.assert_close(r.positions[i, :L], p.positions[i, :L])
+            torch.testing.assert_close(r.positions[i, L], seg.attractors[m])
+            assert float(r.velocities[i, L].abs().max()) == 0.0
+            torch.testing.assert_close(r.times[i, L] - r.times[i, L - 1], p.times[i, L - 1] - p.times[i, L - 2])
+        torch.testing.assert_close(r.attractor, seg.attractors[m])
+
+
+def test_consensus_count_is_reported_and_warned():
+    # three sequences with 3 straight legs, one that goes straight to the goal (2 legs, skipping a corner)
+    g = torch.Generator().manual_seed(0)
+    W = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=F64)
+    tau = torch.linspace(0, 1, 41, dtype=F64)[1:].unsqueeze(-1)
+
+    def path(corners: torch.Tensor) -> torch.Tensor:
+        legs = [corners[:1]] + [corners[m] + tau * (corners[m + 1] - corners[m]) for m in range(len(corners) - 1)]
+        x = torch.cat(legs)
+        return x + 0.003 * torch.randn(x.shape, generator=g, dtype=F64)
+
+    seqs = [path(W) for _ in range(3)] + [path(W[[0, 1, 3]])]
+    bounds = [[0, 41, 81, 121]] * 3 + [[0, 41, 81]]
+    with pytest.warns(SegmentationWarning, match=r"sequences \[3\] had \[2\] steps"):
+        out, forced, equal_cut = _consensus(seqs, bounds, floor_var=1e-4, min_length=5)
+    assert [len(b) - 1 for b in out] == [3, 3, 3, 3] and forced == {3: 2} and equal_cut == []
+    # a sequence too short to split into the consensus count is cut evenly, and that is reported too
+    short = path(W[[0, 3]])[:25]  # 25 samples, min_length 10: at most 2 steps
+    with pytest.warns(SegmentationWarning, match="cut evenly"):
+        out, forced, equal_cut = _consensus(seqs[:3] + [short], bounds[:3] + [[0, 25]], floor_var=1e-4, min_length=10)
+    assert forced == {3: 1} and equal_cut == [3] and len(out[3]) == 4
+    # no warning when every sequence agrees, and segment() records the decisions in info
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SegmentationWarning)
+        _, forced, equal_cut = _consensus(seqs[:3], bounds[:3], floor_var=1e-4, min_length=5)
+    assert forced == {} and equal_cut == []
+    syn = multi_step_demos(torch.Generator().manual_seed(2), n_demos=2, n_steps=2, samples_per_step=40)
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), **FAST)
+    assert isinstance(seg.info["forced_to_consensus"], dict) and isinstance(seg.info["equal_cut_fallback"], list)
+
+
+def test_max_samples_is_documented_as_a_resolution_parameter():
+    # the BIC merge runs on the subsampled sequences, so max_samples changes step counts: users must be told
+    text = (CONF / "segmentation" / "bp_gm_hmm.yaml").read_text()
+    line = next(ln for ln in text.splitlines() if ln.startswith("max_samples:"))
+    assert "resolution" in line and "step count" in line.lower()
+    assert "resolution" in segment.__doc__.split("max_samples:")[1].split("straightness_tolerance:")[0]
+
+
+def test_hyperparameter_step_redraws_auxiliary_transition_weights():
+    # the weights outside the owned blocks (and the row totals) are prior draws given (alpha, kappa); after alpha
+    # and kappa move they must follow the new values, while pi on the owned blocks stays unchanged
+    from lfd_torch.segmentation.sampler import _Run
+    from lfd_torch.segmentation.transitions import transition_matrix
+
+    g = torch.Generator().manual_seed(4)
+    x = torch.randn(3, 20, 2, generator=g, dtype=F64)
+    cfg = BetaProcessHMMSampler(n_chains=64, n_initial_features=2, transition_concentration=1.0, stickiness=2.0)
+    run = _Run(cfg, x, torch.full((3,), 20), g, None)
+    run._grow(3)  # free (unowned) slots: their weights are auxiliary
+    run.alpha = torch.full((64,), 40.0, dtype=F64)  # as if the hyperparameters had moved far since the last draw
+    pi_before = transition_matrix(run.eta, run.F)
+    run._sample_hyperparameters()
+    torch.testing.assert_close(transition_matrix(run.eta, run.F), pi_before)
+    f = run.F.to(F64)
+    off = (1 - f.unsqueeze(-1) * f.unsqueeze(-2)) * (1 - torch.eye(run.F.shape[-1], dtype=F64))  # unowned, j != k
+    ratio = (run.eta * off).sum((1, 2, 3)) / off.sum((1, 2, 3)) / run.alpha  # E[eta_jk] = alpha off the diagonal
+    assert abs(float(ratio.mean()) - 1.0) < 0.05, float(ratio.mean())

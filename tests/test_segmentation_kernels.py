@@ -242,3 +242,59 @@ def test_shared_log_odds_matches_ibp_conditional():
     N, c = 4, 1.5
     p = m / (c + N - 1)
     torch.testing.assert_close(shared_log_odds(m, N, c), torch.log(p / (1 - p)))
+
+
+def _log_space_forward(le, init, P, lengths):
+    """Naive log-space forward algorithm (logsumexp over K^2 terms per step), one sequence at a time."""
+    out = []
+    for b in range(le.shape[0]):
+        L = int(lengths[b])
+        log_a = torch.log(init[b]) + le[b, 0]
+        logP = torch.log(P[b])
+        for t in range(1, L):
+            log_a = torch.logsumexp(log_a.unsqueeze(-1) + logP, dim=0) + le[b, t]
+        out.append(torch.logsumexp(log_a, 0))
+    return torch.stack(out)
+
+
+def test_forward_likelihood_finite_with_tiny_transition_probabilities():
+    # alternating emissions with switch probability 1e-100: every step costs ~ log(1e-100), so a recursion that
+    # normalises only every few steps underflows to 0/0 = NaN; the true log evidence is finite
+    T = 9
+    le = torch.full((2, T, 2), -1000.0, dtype=F64)
+    le[:, torch.arange(T) % 2 == 0, 0] = 0.0
+    le[:, torch.arange(T) % 2 == 1, 1] = 0.0
+    P = torch.tensor([[1 - 1e-100, 1e-100], [1e-100, 1 - 1e-100]], dtype=F64).expand(2, 2, 2).contiguous()
+    init = torch.full((2, 2), 0.5, dtype=F64)
+    lengths = torch.tensor([T, 6])
+    ll = forward_log_likelihood(le, init, P, lengths)
+    assert torch.isfinite(ll).all(), ll
+    torch.testing.assert_close(ll, _log_space_forward(le, init, P, lengths))
+    torch.testing.assert_close(ll, forward_filter(le, init, P, lengths)[1])
+    # a sample no usable state explains: -inf, never NaN, in both recursions
+    le[0, 3] = -math.inf
+    ll = forward_log_likelihood(le, init, P, lengths)
+    filtered, ll_f = forward_filter(le, init, P, lengths)
+    assert ll[0] == -math.inf and ll_f[0] == -math.inf and torch.isfinite(ll[1])
+    assert not torch.isnan(filtered).any()
+
+
+def test_segmentation_package_creates_tensors_on_an_explicit_device():
+    # every factory call (torch.tensor/zeros/ones/arange/full/eye/empty/rand*/linspace) names its device, so that
+    # nothing silently lands on the CPU next to CUDA data (a CPU query of torch.searchsorted once broke CUDA runs)
+    import ast
+    from pathlib import Path
+
+    import lfd_torch.segmentation as pkg
+
+    factories = {"tensor", "zeros", "ones", "arange", "full", "eye", "empty", "rand", "randn", "randint", "linspace"}
+    missing = []
+    for path in sorted(Path(pkg.__file__).parent.glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (
+                isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in factories
+                and isinstance(node.func.value, ast.Name) and node.func.value.id == "torch"
+                and not any(k.arg == "device" for k in node.keywords)
+            ):  # fmt: skip
+                missing.append(f"{path.name}:{node.lineno} torch.{node.func.attr}")
+    assert not missing, missing

@@ -30,6 +30,7 @@ from lfd_torch.segmentation.segmentation import (
     FixedSegmenter,
     NoSegmenter,
     Segmentation,
+    SegmentationWarning,
     runs,
     segment,
 )
@@ -39,6 +40,7 @@ from lfd_torch.segmentation.synthetic import SyntheticSteps, multi_step_demos
 __all__ = [
     "segment",
     "Segmentation",
+    "SegmentationWarning",
     "BPGMHMMSegmenter",
     "FixedSegmenter",
     "NoSegmenter",

@@ -66,12 +66,13 @@ def ibp_log_prior(features: Tensor, mass: float | Tensor, concentration: float) 
     m = f.sum(-2)
     owned = m > 0
     m = m[owned]
-    mass_t = torch.as_tensor(mass, dtype=torch.float64)
+    mass_t = torch.as_tensor(mass, dtype=torch.float64, device=f.device)
     harmonic = sum(concentration / (concentration + j) for j in range(n))
     k_plus = m.numel()
-    log_beta = torch.lgamma(m) + torch.lgamma(n - m + concentration) - torch.lgamma(torch.as_tensor(n + concentration, dtype=torch.float64))
+    log_beta = torch.lgamma(m) + torch.lgamma(n - m + concentration) - math.lgamma(n + concentration)
     cols = f[:, owned].T  # (K+, N)
-    _, multiplicity = torch.unique(cols, dim=0, return_counts=True) if k_plus else (None, torch.zeros(0))
+    empty = (None, torch.zeros(0, device=f.device))
+    _, multiplicity = torch.unique(cols, dim=0, return_counts=True) if k_plus else empty
     log_hist = torch.lgamma(multiplicity.to(torch.float64) + 1.0).sum()
     return k_plus * (torch.log(mass_t) + math.log(concentration)) - log_hist - mass_t * harmonic + log_beta.sum()
 
@@ -87,20 +88,21 @@ def sample_ibp(
     Returns:
         (N, K) bool, columns in order of first appearance.
     """
-    counts = torch.zeros(0, dtype=torch.float64)
+    device = generator.device
+    counts = torch.zeros(0, dtype=torch.float64, device=device)
     rows: list[Tensor] = []
     for i in range(n_sequences):
         p = counts / (concentration + i)
-        own = torch.rand(counts.shape, generator=generator, dtype=torch.float64) < p
-        rate = torch.tensor([mass * concentration / (concentration + i)], dtype=torch.float64)
+        own = torch.rand(counts.shape, generator=generator, dtype=torch.float64, device=device) < p
+        rate = torch.tensor([mass * concentration / (concentration + i)], dtype=torch.float64, device=device)
         n_new = int(torch.poisson(rate, generator=generator))
-        row = torch.cat([own, torch.ones(n_new, dtype=torch.bool)])
-        counts = torch.cat([counts + own.double(), torch.ones(n_new, dtype=torch.float64)])
+        row = torch.cat([own, torch.ones(n_new, dtype=torch.bool, device=device)])
+        counts = torch.cat([counts + own.double(), torch.ones(n_new, dtype=torch.float64, device=device)])
         if counts.numel() > max_features:
             raise RuntimeError(f"IBP draw exceeded {max_features} features")
         rows.append(row)
     k = counts.numel()
-    out = torch.zeros(n_sequences, k, dtype=torch.bool)
+    out = torch.zeros(n_sequences, k, dtype=torch.bool, device=device)
     for i, r in enumerate(rows):
         out[i, : r.numel()] = r
     return out

@@ -59,13 +59,13 @@ def plot_segmentation(
     lo, hi = lo - pad, hi + pad
     if d == 2:
         ax = fig.add_subplot(1, 1, 1)
-        gx = torch.linspace(float(lo[0]), float(hi[0]), grid_size, dtype=torch.float64)
-        gy = torch.linspace(float(lo[1]), float(hi[1]), grid_size, dtype=torch.float64)
+        gx = torch.linspace(float(lo[0]), float(hi[0]), grid_size, dtype=torch.float64, device="cpu")  # plotted
+        gy = torch.linspace(float(lo[1]), float(hi[1]), grid_size, dtype=torch.float64, device="cpu")
         X, Y = torch.meshgrid(gx, gy, indexing="xy")
         pts = torch.stack([X, Y], -1)
-        ld = segmentation.log_density(pts.to(segmentation.state_mean))  # (G, G, M)
+        ld = segmentation.log_density(pts.to(segmentation.state_mean)).cpu()  # (G, G, M)
         best = ld.argmax(-1).to(torch.float64)
-        level = torch.quantile(segmentation.log_density(x_all.to(segmentation.state_mean)).amax(-1), 0.01) - 10.0
+        level = torch.quantile(segmentation.log_density(x_all.to(segmentation.state_mean)).amax(-1).cpu(), 0.01) - 10.0
         best[ld.amax(-1) < level] = float("nan")
         ax.pcolormesh(X.numpy(), Y.numpy(), best.numpy(), cmap=ListedColormap(colors), vmin=-0.5, vmax=M - 0.5,
                       alpha=0.18, shading="auto")  # fmt: skip

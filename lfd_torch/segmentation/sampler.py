@@ -18,7 +18,8 @@ One sweep (Fox, Hughes, Sudderth & Jordan 2014, AOAS 8(3); state-sequence margin
        the data-driven proposal exactly reversible: the ratio carries r(W | theta*) / (p(W) q(theta* | W));
     3. blocked Gibbs draw of every state sequence by forward filtering / backward sampling;
     4. conjugate draws of the emissions (NIW) and transition weights (Dirichlet/Gamma);
-    5. optionally, gamma | F (conjugate Gamma) and alpha, kappa (random-walk Metropolis on their logarithm).
+    5. optionally, gamma | F (conjugate Gamma) and alpha, kappa (random-walk Metropolis on their logarithm, given
+       pi), then the auxiliary transition weights (outside the owned blocks, row totals) redrawn under the new values.
 All moves are batched over chains. Move 1 computes the likelihoods of all flips of a block of features for all
 sequences in one forward pass and then decides sequence by sequence (the IBP couples the rows through m_{-i,k});
 move 2 is batched over sequences too (unique features of different sequences do not interact); move 3 over chains
@@ -551,6 +552,15 @@ class _Run:
             log_a = log_post(a_new, k_new) - log_post(a_cur, k_cur) + torch.log(prop) - torch.log(cur)
             ok = torch.log(self._rand(C)) < log_a
             setattr(self, name, torch.where(ok, prop, cur))
+        # The weights outside the owned blocks and the row totals S_j of the owned blocks are auxiliary variables with
+        # the sticky Gamma prior given (alpha, kappa) (transitions.py); pi does not depend on them. Redraw them under
+        # the new (alpha, kappa), keeping pi: without this, features switched on later would get weights drawn
+        # under stale hyperparameters.
+        fresh = self._gamma_prior_weights((N,), K)  # (C, N, K, K) under the current alpha, kappa
+        f = self.F.to(self.dtype)
+        block = f.unsqueeze(-1) * f.unsqueeze(-2)
+        total = (fresh * block).sum(-1, keepdim=True)  # S_j ~ Gamma(sum of the owned shapes of row j)
+        self.eta = torch.where(block > 0, P * total, fresh)
 
     def _joint_log_prob(self) -> Tensor:
         C, N, K = self.F.shape
@@ -574,8 +584,8 @@ class _Run:
     def sample(self) -> SamplerResult:
         cfg = self.cfg
         n_iter = cfg.n_iterations
-        trace = torch.empty(self.C, n_iter, dtype=self.dtype)
-        n_feat = torch.empty(self.C, n_iter, dtype=torch.long)
+        trace = torch.empty(self.C, n_iter, dtype=self.dtype, device="cpu")  # diagnostics are kept on the CPU
+        n_feat = torch.empty(self.C, n_iter, dtype=torch.long, device="cpu")
         start_keep = int(cfg.burn_in * n_iter)
         best_lp = torch.full((self.C,), _NEG_INF, dtype=self.dtype, device=self.device)
         best: list[dict | None] = [None] * self.C

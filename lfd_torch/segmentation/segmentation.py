@@ -20,12 +20,25 @@ one straight segment explains to within the spatial resolution of the model:
     3. each boundary is moved to the posterior median of the change point between the two adjacent steps under
        the two-line model (a corner), at full resolution;
     4. all sequences get the same number of steps (the most frequent count, ties to the larger): extra steps
-       are merged, missing steps split at their best change point.
+       are merged, missing steps split at their best change point. Steps are matched across sequences by their
+       order only, so a demonstration that skips a step has one of its steps split in two to reach the
+       consensus count; this is reported (:class:`SegmentationWarning`, ``info["forced_to_consensus"]``), as is
+       the last-resort equal cut of a sequence too short to split (``info["equal_cut_fallback"]``).
+
+The line stages need d >= 2 (a 1-D path is a line everywhere): :func:`segment` raises
+:class:`~lfd_torch.errors.InvalidArgumentError` for 1-D data; :class:`FixedSegmenter` and :class:`NoSegmenter`
+accept it.
+
+Resolution. The BIC merge of stage 2 runs on the subsampled sequences (at most ``max_samples`` points), so
+``max_samples`` is a resolution parameter, not only a speed knob: more points make the evidence for a bend
+stronger (the BIC penalty grows like log n, the misfit of one line for a curved piece like n), and a curved
+path can then be cut into more steps. Keep it fixed when comparing step counts across runs.
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -36,7 +49,7 @@ import torch
 from torch import Tensor
 
 from lfd_torch.data import Demos
-from lfd_torch.errors import ShapeMismatchError, StoreError, TooFewSamplesError
+from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError, StoreError, TooFewSamplesError
 from lfd_torch.segmentation.emissions import gaussian_log_density
 from lfd_torch.segmentation.sampler import BetaProcessHMMSampler, SamplerResult
 
@@ -48,8 +61,14 @@ __all__ = [
     "NoSegmenter",
     "runs",
     "resolve_min_length",
+    "SegmentationWarning",
     "SCHEMA_VERSION",
 ]
+
+
+class SegmentationWarning(UserWarning):
+    """The step extraction had to force a result (a sequence cut to the consensus step count, or cut evenly)."""
+
 
 SCHEMA_VERSION = 1
 
@@ -62,13 +81,16 @@ class Segmentation:
     Attributes:
         labels: N tensors (T_i,) long, step of every sample (non-decreasing, 0..M-1).
         boundaries: (N, M + 1) long, first sample of each step, then T_i.
-        attractors: (M, d) g_m.
+        attractors: (M, d) g_m: for m < M the mean over sequences of the last sample of step m; g_M is the
+            demonstrations' attractor (``Demos.attractor``, by default the mean of their end points).
         state_mean: (S, d) emission means of the HMM states (or one Gaussian per step without an HMM).
         state_covariance: (S, d, d).
         step_weights: (M, S) mixture weights of the states in each subtask space (rows sum to 1).
         states: N tensors (T_i,) long HMM state of every sample (the step index when there is no HMM).
         sampler: the sampler's result (trace, acceptance), None without an HMM.
         info: free-form diagnostics (timings, subsampling strides, merge decisions).
+
+    Index tensors (labels, boundaries, states) live on the device of the segmented data.
     """
 
     labels: tuple[Tensor, ...]
@@ -142,15 +164,25 @@ class Segmentation:
         """(..., M) bool: x lies in A_m, i.e. p(x | A_m) >= p(x | A_m-) (the test of paper Sec. IV)."""
         return self.log_density(x) >= self.other_log_density(x)
 
-    def split(self, demos: Demos) -> list[Demos]:
+    def split(self, demos: Demos, *, end_at_attractor: bool = False) -> list[Demos]:
         """Cut every demonstration into its steps.
+
+        A piece ends where its demonstration reaches the step boundary, not exactly at g_m: g_m is the mean of
+        the pieces' end points (or the task attractor for the last step), so each piece's end differs from g_m by
+        that demonstration's spread around the mean, and its last velocity is the demonstration's velocity there
+        (not zero). Primitives fitted to the pieces must therefore tolerate ends that miss the attractor, or use
+        ``end_at_attractor=True``.
 
         Args:
             demos: the demonstrations that were segmented (same number and lengths).
+            end_at_attractor: append one sample at g_m with zero velocity to every piece of step m, one time step
+                (the piece's last sampling interval) after its last sample, so that every piece ends at rest at
+                its attractor.
 
         Returns:
             M ``Demos``; entry m holds the pieces of step m, with attractor g_m. Piece m of demonstration i is
-            samples boundaries[i, m] .. boundaries[i, m + 1] - 1; velocities and times are the original ones.
+            samples boundaries[i, m] .. boundaries[i, m + 1] - 1 (plus the appended sample with
+            ``end_at_attractor``); velocities and times are the original ones.
         """
         if demos.n_demos != self.n_sequences:
             raise ShapeMismatchError(f"{demos.n_demos} demonstrations, the segmentation has {self.n_sequences}")
@@ -161,9 +193,15 @@ class Segmentation:
             pos, vel, tms = [], [], []
             for i in range(self.n_sequences):
                 a, b = int(self.boundaries[i, m]), int(self.boundaries[i, m + 1])
-                pos.append(demos.positions[i, a:b])
-                vel.append(demos.velocities[i, a:b])
-                tms.append(demos.times[i, a:b])
+                p, v, t = demos.positions[i, a:b], demos.velocities[i, a:b], demos.times[i, a:b]
+                if end_at_attractor:
+                    dt = t[-1] - t[-2] if b - a > 1 else t.new_tensor(1.0)
+                    p = torch.cat([p, self.attractors[m].to(p).unsqueeze(0)])
+                    v = torch.cat([v, torch.zeros_like(v[:1])])
+                    t = torch.cat([t, (t[-1] + dt).unsqueeze(0)])
+                pos.append(p)
+                vel.append(v)
+                tms.append(t)
             out.append(
                 Demos.from_sequences(
                     pos, times=tms, velocities=vel, attractor=self.attractors[m].to(demos.positions),
@@ -311,7 +349,8 @@ def _best_split(x: Tensor, min_len: int, *, posterior_median: bool = False) -> t
         dof = max((n - 2 * d) * (d - 1), 1)
         var = (float(window.min()) / dof) + torch.finfo(x.dtype).tiny
         weights = torch.softmax(-(window - window.min()) / (2.0 * var), dim=0)
-        t = lo + int(torch.searchsorted(weights.cumsum(0), torch.tensor([0.5], dtype=weights.dtype)).clamp_max(hi - lo))
+        half = torch.tensor([0.5], dtype=weights.dtype, device=weights.device)
+        t = lo + int(torch.searchsorted(weights.cumsum(0), half).clamp_max(hi - lo))
     return t, float(total[t])
 
 
@@ -393,6 +432,55 @@ def _refine(x: Tensor, bounds: list[int], min_len: int) -> list[int]:
     return bounds
 
 
+def _consensus(
+    seqs: list[Tensor], bounds_all: list[list[int]], floor_var: float, min_length: float
+) -> tuple[list[list[int]], dict[int, int], list[int]]:
+    """Bring every sequence to the consensus step count M (the most frequent count, ties to the larger).
+
+    Extra steps are merged (line BIC), missing ones split at their best change point; a sequence too short to
+    split is cut evenly. Every sequence whose count was changed triggers a :class:`SegmentationWarning`.
+
+    Args:
+        seqs: N full-resolution sequences (T_i, d).
+        bounds_all: N lists of step starts plus T_i.
+        floor_var: residual variance floor of the line model.
+        min_length: the ``min_length`` argument of :func:`segment`.
+
+    Returns:
+        The refined bounds (all with M + 1 entries), {sequence: its own count} for the sequences forced to M, and
+        the sequences that were cut evenly.
+    """
+    counts = Counter(len(b) - 1 for b in bounds_all)
+    top = max(counts.values())
+    M = max(c for c, v in counts.items() if v == top)
+    forced: dict[int, int] = {}
+    equal_cut: list[int] = []
+    out = []
+    for i, xf in enumerate(seqs):
+        min_len = resolve_min_length(min_length, xf.shape[0])
+        b = bounds_all[i]
+        if len(b) - 1 != M:
+            forced[i] = len(b) - 1
+        if len(b) - 1 > M:
+            b = _merge_steps(xf, b, floor_var, target=M)
+        elif len(b) - 1 < M:
+            b = _split_steps(xf, b, M, min_len)
+        if len(b) - 1 != M:  # too short to split further: keep a consistent count by equal cuts
+            Ti = xf.shape[0]
+            b = [round(j * Ti / M) for j in range(M)] + [Ti]
+            equal_cut.append(i)
+        out.append(_refine(xf, b, min_len))
+    if forced:
+        warnings.warn(
+            f"sequences {sorted(forced)} had {[forced[i] for i in sorted(forced)]} steps and were forced to the "
+            f"consensus count {M} (steps are matched by order: a sequence that skips or adds a step is cut to fit)"
+            + (f"; sequences {equal_cut} were too short to split and were cut evenly" if equal_cut else ""),
+            SegmentationWarning,
+            stacklevel=3,
+        )
+    return out, forced, equal_cut
+
+
 def _gaussian_fit(x: Tensor, ridge: Tensor) -> tuple[Tensor, Tensor]:
     mean = x.mean(0)
     c = x - mean
@@ -421,20 +509,21 @@ def _assemble(
 ) -> Segmentation:
     M = len(bounds[0]) - 1
     S = state_mean.shape[0]
-    boundaries = torch.tensor(bounds, dtype=torch.long)
+    boundaries = torch.tensor(bounds, dtype=torch.long, device=demos.device)
     labels = []
-    weights = torch.zeros(M, S, dtype=torch.float64)
+    weights = torch.zeros(M, S, dtype=torch.float64, device=demos.device)
     ends = torch.zeros(M, demos.dim, dtype=demos.dtype, device=demos.device)
     for i, b in enumerate(bounds):
-        lab = torch.zeros(int(demos.lengths[i]), dtype=torch.long)
+        lab = torch.zeros(int(demos.lengths[i]), dtype=torch.long, device=demos.device)
         for m in range(M):
             lab[b[m] : b[m + 1]] = m
             st = states_full[i][b[m] : b[m + 1]]
-            weights[m] += torch.bincount(st.cpu(), minlength=S).to(torch.float64)[:S]
+            weights[m] += torch.bincount(st.to(demos.device), minlength=S).to(torch.float64)[:S]
             ends[m] += demos.positions[i, b[m + 1] - 1]
         labels.append(lab)
     weights = weights / weights.sum(-1, keepdim=True).clamp_min(1.0)
     attractors = ends / len(bounds)
+    attractors[-1] = demos.attractor.to(attractors)  # the last step ends at the task's goal
     return Segmentation(
         labels=tuple(labels),
         boundaries=boundaries,
@@ -442,7 +531,7 @@ def _assemble(
         state_mean=state_mean,
         state_covariance=state_cov,
         step_weights=weights.to(state_mean),
-        states=tuple(s.cpu() for s in states_full),
+        states=tuple(s.to(demos.device) for s in states_full),
         sampler=sampler,
         info=info,
     )
@@ -460,7 +549,7 @@ def _steps_from_bounds(demos: Demos, bounds: list[list[int]], info: dict[str, An
         means.append(mu)
         covs.append(cov)
     for i, b in enumerate(bounds):
-        s = torch.zeros(int(demos.lengths[i]), dtype=torch.long)
+        s = torch.zeros(int(demos.lengths[i]), dtype=torch.long, device=demos.device)
         for m in range(M):
             s[b[m] : b[m + 1]] = m
         states.append(s)
@@ -499,17 +588,30 @@ def segment(
         min_length: shortest step, samples (>= 1) or fraction of each sequence's length (< 1); every sequence
             needs at least 2 * min_length samples.
         max_samples: sequences are subsampled uniformly in time to at most this many points before sampling;
-            labels are mapped back and boundaries refined at full resolution.
+            labels are mapped back and boundaries refined at full resolution. It is also the resolution of the
+            BIC merge of steps (see the module docstring): the number of steps of a curved path can change with
+            it, so keep it fixed when step counts are compared.
         straightness_tolerance: residual floor of the segment-level line model, as a fraction of the RMS spread
             of the data (the spatial resolution of a step; see the module docstring).
         Remaining keyword arguments: see :class:`BetaProcessHMMSampler`.
 
     Returns:
-        Segmentation.
+        Segmentation. ``info["forced_to_consensus"]`` maps each sequence whose own step count differed from the
+        consensus count M to that count; ``info["equal_cut_fallback"]`` lists the sequences that had to be cut
+        evenly into M steps. Either case also emits a :class:`SegmentationWarning`.
+
+    Raises:
+        InvalidArgumentError: 1-D data (the segment-level line model needs d >= 2) or bad hyperparameters.
+        TooFewSamplesError: a sequence shorter than 2 * min_length.
     """
     import time
 
     demos = _check_demos(demos, min_length)
+    if demos.dim < 2:
+        raise InvalidArgumentError(
+            "BP-GM-HMM segmentation needs d >= 2: its step extraction fits lines to the path, and every 1-D path is "
+            "a line; use FixedSegmenter or NoSegmenter for 1-D data"
+        )
     if max_samples < 4:
         raise ValueError(f"max_samples must be >= 4, got {max_samples}")
     if not straightness_tolerance > 0:
@@ -551,24 +653,14 @@ def segment(
         bounds_all.append(bounds)
         states_full.append(full)
     counts = Counter(len(b) - 1 for b in bounds_all)
-    top = max(counts.values())
-    M = max(c for c, v in counts.items() if v == top)
-    for i, xf in enumerate(seqs_full):
-        min_len = resolve_min_length(min_length, xf.shape[0])
-        b = bounds_all[i]
-        if len(b) - 1 > M:
-            b = _merge_steps(xf, b, floor_var, target=M)
-        elif len(b) - 1 < M:
-            b = _split_steps(xf, b, M, min_len)
-        if len(b) - 1 != M:  # too short to split further: keep a consistent count by equal cuts
-            Ti = xf.shape[0]
-            b = [round(j * Ti / M) for j in range(M)] + [Ti]
-        bounds_all[i] = _refine(xf, b, min_len)
+    bounds_all, forced, equal_cut = _consensus(seqs_full, bounds_all, floor_var, min_length)
     info = {
         "sampler_seconds": t1 - t0,
         "postprocess_seconds": time.perf_counter() - t1,
         "strides": strides,
         "step_counts_before_consensus": dict(counts),
+        "forced_to_consensus": forced,
+        "equal_cut_fallback": equal_cut,
         "straightness_floor_var": floor_var,
     }
     return _assemble(

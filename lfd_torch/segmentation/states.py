@@ -24,10 +24,6 @@ from lfd_torch.errors import ShapeMismatchError
 
 __all__ = ["forward_log_likelihood", "forward_filter", "backward_sample"]
 
-# The likelihood-only recursion normalises every few steps: each step shrinks the vector by at most the
-# one-step predictive probability of the scaled emission (max_k e_t = 1), so a handful of steps cannot underflow
-# float64 unless the model gives a sample probability below ~1e-75 relative to its best state.
-_RENORM_EVERY = 4
 
 
 def _check(log_emission: Tensor, initial: Tensor, transition: Tensor, lengths: Tensor) -> None:
@@ -59,20 +55,19 @@ def _forward(
     _check(log_emission, initial, transition, lengths)
     B, T, K = log_emission.shape
     e, m, valid = _scaled_emission(log_emission, lengths)
+    # Normalised at every step (a lazier schedule underflows to 0/0 = NaN when transitions are tiny). A step whose
+    # mass is exactly 0 (no usable state explains the sample, or an underflow of a single step below ~1e-308) has
+    # log normaliser -inf; its vector is left at 0 instead of 0/0, so the log likelihood is -inf, never NaN.
     alpha = initial * e[:, 0]
     norm = alpha.sum(-1, keepdim=True)
     norms = [norm]
-    alpha = alpha / norm
+    alpha = alpha / torch.where(norm > 0, norm, torch.ones_like(norm))
     out = [alpha]
-    renorm_every = 1 if keep else _RENORM_EVERY
     for t in range(1, T):
         alpha = torch.bmm(alpha.unsqueeze(1), transition).squeeze(1).mul_(e[:, t])
-        if t % renorm_every == 0 or t == T - 1:
-            norm = alpha.sum(-1, keepdim=True)
-            alpha = alpha / norm
-            norms.append(norm)
-        else:
-            norms.append(torch.ones_like(norm))
+        norm = alpha.sum(-1, keepdim=True)
+        alpha = alpha / torch.where(norm > 0, norm, torch.ones_like(norm))
+        norms.append(norm)
         if keep:
             out.append(alpha)
     log_norm = torch.log(torch.cat(norms, 1))

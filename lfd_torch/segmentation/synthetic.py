@@ -57,18 +57,20 @@ def random_waypoints(
     """
     if n_steps < 1 or dim < 2:
         raise ValueError("need n_steps >= 1 and dim >= 2")
-    pts = [torch.zeros(dim, dtype=dtype)]
-    direction = torch.randn(dim, generator=generator, dtype=dtype)
+    device = generator.device
+    pts = [torch.zeros(dim, dtype=dtype, device=device)]
+    direction = torch.randn(dim, generator=generator, dtype=dtype, device=device)
     direction = direction / direction.norm()
     for m in range(n_steps):
         if m > 0:
-            turn = math.radians(min_turn_deg + (max_turn_deg - min_turn_deg) * float(torch.rand(1, generator=generator)))
+            u = float(torch.rand(1, generator=generator, device=device))
+            turn = math.radians(min_turn_deg + (max_turn_deg - min_turn_deg) * u)
             # rotate `direction` by `turn` inside a random plane containing it
-            other = torch.randn(dim, generator=generator, dtype=dtype)
+            other = torch.randn(dim, generator=generator, dtype=dtype, device=device)
             other = other - (other @ direction) * direction
             other = other / other.norm()
             direction = math.cos(turn) * direction + math.sin(turn) * other
-        length = leg_range[0] + (leg_range[1] - leg_range[0]) * float(torch.rand(1, generator=generator))
+        length = leg_range[0] + (leg_range[1] - leg_range[0]) * float(torch.rand(1, generator=generator, device=device))
         pts.append(pts[-1] + length * direction)
     return torch.stack(pts)
 
@@ -115,27 +117,30 @@ def multi_step_demos(
         raise ValueError(f"profile must be one of {PROFILES}, got {profile!r}")
     if waypoints is None:
         waypoints = random_waypoints(n_steps, dim, generator, dtype=dtype)
-    waypoints = waypoints.to(dtype)
+    device = generator.device  # the data are drawn on the generator's device
+    waypoints = waypoints.to(dtype=dtype, device=device)
     M = waypoints.shape[0] - 1
     d = waypoints.shape[1]
     sequences, switches = [], []
     for _ in range(n_demos):
-        corners = waypoints + waypoint_jitter * torch.randn(waypoints.shape, generator=generator, dtype=dtype)
+        jitter = torch.randn(waypoints.shape, generator=generator, dtype=dtype, device=device)
+        corners = waypoints + waypoint_jitter * jitter
         corners[-1] = waypoints[-1]  # common goal
         pieces, switch = [], []
         total = 0
         for m in range(M):
-            factor = 1.0 + timing_jitter * (2.0 * float(torch.rand(1, generator=generator)) - 1.0)
+            factor = 1.0 + timing_jitter * (2.0 * float(torch.rand(1, generator=generator, device=device)) - 1.0)
             n = max(4, int(round(samples_per_step * factor)))
-            tau = torch.arange(1 if m > 0 else 0, n + 1, dtype=dtype) / n
+            tau = torch.arange(1 if m > 0 else 0, n + 1, dtype=dtype, device=device) / n
             leg = corners[m] + _profile(tau, profile).unsqueeze(-1) * (corners[m + 1] - corners[m])
             pieces.append(leg)
             total += leg.shape[0]
             if m < M - 1:
                 switch.append(total)  # corner arrival is the last sample of this leg; next step starts after it
         path = torch.cat(pieces)
-        path = path + noise * torch.randn(path.shape, generator=generator, dtype=dtype)
+        path = path + noise * torch.randn(path.shape, generator=generator, dtype=dtype, device=device)
         sequences.append(path)
-        switches.append(torch.tensor(switch, dtype=torch.long))
+        switches.append(torch.tensor(switch, dtype=torch.long, device=device))
     demos = Demos.from_sequences(sequences, dt=0.01, attractor=waypoints[-1], dtype=dtype)
-    return SyntheticSteps(demos, waypoints, torch.stack(switches) if M > 1 else torch.zeros(n_demos, 0, dtype=torch.long), profile)
+    no_switch = torch.zeros(n_demos, 0, dtype=torch.long, device=device)
+    return SyntheticSteps(demos, waypoints, torch.stack(switches) if M > 1 else no_switch, profile)
