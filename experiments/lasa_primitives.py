@@ -22,7 +22,6 @@ that raises a typed error (solver, certificate) is recorded with NaN metrics and
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
 import os
@@ -43,16 +42,11 @@ from lfd_torch.errors import LfdError
 from lfd_torch.metrics import cosine_dissimilarity, dtw_distance, velocity_error
 from lfd_torch.rollout import rollout
 from lfd_torch.store import run_manifest, write_table
+from lfd_torch.utils import derive_seed
 
 log = logging.getLogger(__name__)
 
 METRICS: tuple[str, ...] = ("E1", "RMSE", "E2", "DTWD")
-
-
-def derive_seed(*parts: Any) -> int:
-    """A 63-bit seed from the given parts (stable across runs and machines)."""
-    digest = hashlib.sha256("/".join(str(p) for p in parts).encode()).digest()
-    return int.from_bytes(digest[:8], "little") >> 1
 
 
 def subsample(demos: Demos, stride: int) -> Demos:

@@ -325,3 +325,40 @@ def test_lasa_primitives_paper_preset_tiny_multirun(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr[-3000:]
     table = collect(tmp_path)
     assert set(table["shape"]) == {"Angle", "Line"} and len(table) == 2 * 3 * 7
+
+
+def test_report_primitives_summary_and_count(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """The report averages demos within a seed, then seeds; a shape counts only if both errors are no worse."""
+    import pandas as pd
+
+    sys.path.insert(0, str(CONF.parent / "experiments"))
+    from report_primitives import count_no_worse, main, summarise
+
+    rows = []
+    # shape A: lpvds better on both; shape B: lpvds better RMSE, worse e_dot; shape C: lpvds fails on seed 1
+    spec = {("A", "lpvds_pqlf"): (1.0, 0.1), ("A", "seds"): (2.0, 0.2), ("B", "lpvds_pqlf"): (1.0, 0.3),
+            ("B", "seds"): (2.0, 0.2), ("C", "lpvds_pqlf"): (1.0, 0.1), ("C", "seds"): (2.0, 0.2)}  # fmt: skip
+    for (shape, method), (rmse, e2) in spec.items():
+        for seed in (0, 1):
+            failed = shape == "C" and method == "lpvds_pqlf" and seed == 1
+            for traj, split in ((0, "train"), (4, "test"), (5, "test")):
+                bump = 0.5 * seed + (0.2 if traj == 5 else 0.0)  # per-seed and per-demo variation
+                rows.append({"experiment": "x", "shape": shape, "method": method, "fold": 0, "seed": seed,
+                             "trajectory": traj, "split": split, "status": "SolverError: x" if failed else "ok",
+                             "RMSE": np.nan if failed else rmse + bump, "E2": np.nan if failed else e2,
+                             "DTWD": 3.0, "n_components": 4 + seed, "fit_time_s": 0.1 * (seed + 1),
+                             "max_margin": np.nan if failed else -1e-3})  # fmt: skip
+    table = pd.DataFrame(rows)
+    summary = summarise(table, "test")
+    a = summary.loc[("A", "lpvds_pqlf")]
+    # mean over demos (rmse, rmse + 0.2) then over seeds (+0, +0.5): rmse + 0.1 + 0.25
+    assert a["RMSE"] == pytest.approx(1.35) and a["K"] == pytest.approx(4.5) and a["fit_s"] == pytest.approx(0.15)
+    assert a["RMSE_std"] == pytest.approx(0.25) and bool(a["certified"]) and a["n_seeds"] == 2
+    c = summary.loc[("C", "lpvds_pqlf")]
+    assert not bool(c["certified"]) and c["n_failed"] == 1
+    assert count_no_worse(summary, "lpvds_pqlf", "seds") == (1, 3, ["A"])
+    path = tmp_path / "t.parquet"
+    table.to_parquet(path)
+    assert main([str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "on 1 of 3 shapes: A" in out and "| C | lpvds_pqlf |" in out and "NO (1 failed)" in out

@@ -28,7 +28,7 @@ class PCGMMFitter:
     length_scale: float | None = None
     alpha: float = 1.0
     kappa0: float = 1.0
-    nu0_offset: float = 10.0
+    nu0_offset: float = 2.0
     psi_scale: float = 1.0
     n_iter: int = 20
     min_cluster_size: int | None = None
