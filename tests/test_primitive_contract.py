@@ -78,6 +78,8 @@ class PrimitiveContract:
         torch.testing.assert_close(out, flat, rtol=0, atol=0)
         single = torch.stack([model(p) for p in x.reshape(-1, model.dim)]).reshape(x.shape)
         torch.testing.assert_close(out, single, rtol=1e-12, atol=1e-12)
+        feature_major = x.reshape(-1, model.dim).T.contiguous().T  # the (N, d) view the rollout engine passes
+        torch.testing.assert_close(model(feature_major), flat.reshape(-1, model.dim), rtol=0, atol=0)
 
     def test_zero_at_attractor(self, model: StablePrimitive) -> None:
         assert torch.equal(model(model.attractor), torch.zeros_like(model.attractor))
