@@ -21,8 +21,11 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from lfd_torch.data import LASA_NAMES, Demos, load_lasa
+from lfd_torch.ds import LPVDS
+from lfd_torch.gmm import GMM
 from lfd_torch.metrics import cosine_dissimilarity, dtw_distance, swept_area, velocity_error
 from lfd_torch.rollout import rollout
 
@@ -73,34 +76,24 @@ def bench_dtw(demos: Demos, repeats: int) -> None:
     print(f"[dtw] same pairs, Euclidean local cost (DTWD of the LPV-DS literature): ours {t_euc:.3f} s")
 
 
-def linear_mixture(n_components: int, d: int, generator: torch.Generator, dtype: torch.dtype):
-    """f(x) = sum_k gamma_k(x) A_k (x - g), gamma = softmax of isotropic Gaussian log-densities; A_k + A_k^T < 0.
+def linear_mixture(n_components: int, d: int, generator: torch.Generator, dtype: torch.dtype) -> tuple[LPVDS, Tensor]:
+    """An LPV-DS with K random components, f(x) = sum_k gamma_k(x) A_k (x - g), A_k + A_k^T < 0 (certified, P = I).
 
-    Evaluated feature-major ((K*d, N) intermediates): reductions over a trailing axis of size 2 are slow on CPUs,
-    and the rollout engine stores its state as (d, N), so ``x.T`` is contiguous and ``out.T`` costs no copy.
+    Built directly from parameters (no fitting), so the benchmark times the package's own field evaluation.
     """
-    means = 20 * torch.randn(n_components, d, generator=generator, dtype=torch.float64)
-    M = torch.randn(n_components, d, d, generator=generator, dtype=torch.float64)
-    S = torch.randn(n_components, d, d, generator=generator, dtype=torch.float64)
-    A = -(M @ M.transpose(1, 2) + 0.5 * torch.eye(d, dtype=torch.float64)) + (S - S.transpose(1, 2))
-    g = torch.zeros(d, dtype=dtype)
-    inv_var = 1.0 / 100.0
-    A_stack = A.reshape(n_components * d, d).to(dtype)  # rows k*d+i: (A_k)_i
-    A_shift = (A.reshape(n_components * d, d) @ g.double()).reshape(-1, 1).to(dtype)
-    means_t = means.to(dtype)  # (K, d)
-    half_sq_means = (0.5 * inv_var * means.square().sum(1)).reshape(-1, 1).to(dtype)  # (K, 1)
-
-    def field(x: torch.Tensor) -> torch.Tensor:
-        n = x.shape[0]
-        xt = x.T  # (d, N)
-        # log N(x; mu_k, 100 I) up to a constant shared by all k: (mu_k . x)/100 - |mu_k|^2/200
-        logits = torch.mm(means_t, xt).mul_(inv_var).sub_(half_sq_means)  # (K, N)
-        gamma = torch.softmax(logits, dim=0)
-        y = torch.mm(A_stack, xt).sub_(A_shift).view(n_components, d, n)  # A_k (x - g)
-        out = (y * gamma.unsqueeze(1)).sum(0)  # (d, N)
-        return out.T
-
-    return field, g
+    f64 = dict(dtype=torch.float64)
+    means = 20 * torch.randn(n_components, d, generator=generator, **f64)
+    R = torch.randn(n_components, d, d, generator=generator, **f64)
+    covariances = 10 * (R @ R.transpose(1, 2)) + 20 * torch.eye(d, **f64)
+    weights = torch.full((n_components,), 1.0 / n_components, **f64)
+    M = torch.randn(n_components, d, d, generator=generator, **f64)
+    S = torch.randn(n_components, d, d, generator=generator, **f64)
+    A = -(M @ M.transpose(1, 2) + 0.5 * torch.eye(d, **f64)) + (S - S.transpose(1, 2))
+    g = torch.zeros(d, **f64)
+    eye = torch.eye(d, **f64)
+    model = LPVDS(GMM(weights, means, covariances), A, g, eye, eye.expand(n_components, d, d).clone())
+    model = model.to(dtype=dtype)
+    return model, model.attractor
 
 
 def bench_rollout(repeats: int, n_starts: int = 10_000, n_steps: int = 2_000) -> None:
@@ -129,7 +122,7 @@ def bench_rollout(repeats: int, n_starts: int = 10_000, n_steps: int = 2_000) ->
     t_eager, eager_out = median_time(eager, max(1, repeats // 2))
     t_eager_full = t_eager / n_eager * n_starts
     # same numbers as the batched engine on the rows that did not stop early
-    print(f"[rollout] {n_starts} starts x {n_steps} Euler steps, 8-component linear mixture, float32, "
+    print(f"[rollout] {n_starts} starts x {n_steps} Euler steps, 8-component LPV-DS, float32, "
           f"{torch.get_num_threads()} thread(s): batched {t_batched:.3f} s (goal <= 2 s); plain eager loop "
           f"{t_eager / n_eager * 1e3:.0f} ms per start -> {t_eager_full:.0f} s extrapolated; ratio "
           f"{t_eager_full / t_batched:.0f}x; with stopping at 1e-3: {t_stop:.3f} s, converged "
