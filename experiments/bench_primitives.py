@@ -32,7 +32,6 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import argparse
 import functools
 import statistics
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -40,15 +39,12 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from lasa_primitives import subsample  # noqa: E402
-
-from lfd_torch.data import LASA_NAMES, Demos, load_lasa  # noqa: E402
-from lfd_torch.ds import StablePrimitive, fit_lpvds, fit_seds  # noqa: E402
-from lfd_torch.gmm import fit_pcgmm  # noqa: E402
-from lfd_torch.metrics import cosine_dissimilarity, velocity_error  # noqa: E402
-from lfd_torch.utils import derive_seed  # noqa: E402
+from lfd_torch.data import LASA_NAMES, Demos, load_lasa
+from lfd_torch.ds import StablePrimitive, fit_lpvds, fit_seds
+from lfd_torch.gmm import fit_pcgmm
+from lfd_torch.metrics import cosine_dissimilarity, velocity_error
+from lfd_torch.preprocess import subsample
+from lfd_torch.utils import derive_seed
 
 SHAPES = ("Sshape", "Snake", "CShape", "NShape", "heee", "Angle")
 
@@ -75,7 +71,7 @@ def cross_validate(shapes: list[str], factors: list[float], nu0_offset: float, s
     """Leave-one-demonstration-out CV on demonstrations 0-3 (every 2nd sample); one row per fit and held-out demo."""
     rows = []
     for shape in shapes:
-        demos = subsample(load_lasa(shape), 2)
+        demos = subsample(load_lasa(shape), 2, keep_last=False)
         for held_out in range(4):
             train, test = demos[[i for i in range(4) if i != held_out]], demos[[held_out]]
             x, _, _ = train.samples()
@@ -132,13 +128,13 @@ def main() -> None:
         print("[bench] lfd_torch.gmm.fit_damm not available: the DAMM variant is not measured")
 
     # warm-up (imports, cvxpy canonicalisation caches) so that the first timed fit is not penalised
-    warm = subsample(load_lasa("Line")[[0, 1]], 10)
+    warm = subsample(load_lasa("Line")[[0, 1]], 10, keep_last=False)
     for fit in methods.values():
         fit(warm, generator=torch.Generator().manual_seed(0))
 
     rows = []
     for shape in args.shapes:
-        demos = subsample(load_lasa(shape), 2)
+        demos = subsample(load_lasa(shape), 2, keep_last=False)
         train, test = demos[[0, 1, 2, 3]], demos[[4, 5, 6]]
         n_points = int(train.lengths.sum())
         for seed in range(args.seeds or 5):

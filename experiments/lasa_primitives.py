@@ -40,6 +40,7 @@ from lfd_torch.data import Demos
 from lfd_torch.ds import StablePrimitive
 from lfd_torch.errors import LfdError
 from lfd_torch.metrics import cosine_dissimilarity, dtw_distance, velocity_error
+from lfd_torch.preprocess import subsample
 from lfd_torch.rollout import rollout
 from lfd_torch.store import run_manifest, write_table
 from lfd_torch.utils import derive_seed
@@ -47,22 +48,6 @@ from lfd_torch.utils import derive_seed
 log = logging.getLogger(__name__)
 
 METRICS: tuple[str, ...] = ("E1", "RMSE", "E2", "DTWD")
-
-
-def subsample(demos: Demos, stride: int) -> Demos:
-    """Every ``stride``-th sample of each demonstration (positions, velocities and times as given)."""
-    if stride == 1:
-        return demos
-    idx = [torch.arange(0, int(n), stride, device=demos.device) for n in demos.lengths]
-    return Demos.from_sequences(
-        [demos.positions[i, k] for i, k in enumerate(idx)],
-        times=[demos.times[i, k] for i, k in enumerate(idx)],
-        velocities=[demos.velocities[i, k] for i, k in enumerate(idx)],
-        attractor=demos.attractor,
-        names=demos.names or None,
-        dtype=demos.dtype,
-        device=demos.device,
-    )
 
 
 def evaluate(model: StablePrimitive, demos: Demos, rollout_cfg: DictConfig) -> dict[str, torch.Tensor]:
@@ -96,7 +81,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     if not isinstance(cfg.seed, int):
         raise TypeError(f"seed must be an integer, got {cfg.seed!r}")
     shape = str(cfg.data.shape)
-    demos = subsample(instantiate(cfg.data), int(cfg.subsample))
+    demos = subsample(instantiate(cfg.data), int(cfg.subsample), keep_last=False)  # plain x[::k], as the protocol
     train_idx, test_idx = list(cfg.train_demos), list(cfg.test_demos)
     splits = {"train": (train_idx, demos[train_idx]), "test": (test_idx, demos[test_idx])}
     out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(cfg.get("out_dir", "."))

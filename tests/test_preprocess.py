@@ -119,6 +119,11 @@ def test_subsample_matches_slicing(demos):
         idx = list(range(0, n - 1, 4)) + [n - 1]
         np.testing.assert_array_equal(out.sequences()[i].numpy(), seq.numpy()[idx])
         np.testing.assert_array_equal(out.times[i, : len(idx)].numpy(), demos.times[i, idx].numpy())
+    plain = subsample(demos, 4, keep_last=False)  # x[::4], the LASA protocol of the LPV-DS literature
+    for i, seq in enumerate(demos.sequences()):
+        np.testing.assert_array_equal(plain.sequences()[i].numpy(), seq.numpy()[::4])
+        np.testing.assert_array_equal(plain.velocities[i, : int(plain.lengths[i])].numpy(),
+                                      demos.velocities[i, : len(seq)].numpy()[::4])  # fmt: skip
 
 
 def test_screen_dimensions_drops_quiet_dimension(generator):

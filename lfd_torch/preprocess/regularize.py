@@ -185,8 +185,14 @@ def resample(demos: Demos, n_samples: int, mode: str = "time") -> Demos:
     return Demos(positions, velocities, times, lengths, demos.attractor, demos.names)
 
 
-def subsample(demos: Demos, step: int) -> Demos:
-    """Keep every ``step``-th sample, always keeping each demonstration's last sample (its end point).
+def subsample(demos: Demos, step: int, *, keep_last: bool = True) -> Demos:
+    """Keep every ``step``-th sample (0, step, 2 step, ...).
+
+    Args:
+        demos: input set.
+        step: stride in samples (>= 1).
+        keep_last: also keep each demonstration's last sample (its end point, usually the goal) when the stride
+            skips it. ``False`` is the plain ``x[::step]`` of the LPV-DS literature's LASA protocol.
 
     Velocities are taken from the input at the kept samples (not re-estimated).
     """
@@ -195,11 +201,15 @@ def subsample(demos: Demos, step: int) -> Demos:
     if step == 1:
         return demos
     L = demos.lengths
-    n_kept = (L - 1 + step - 1) // step + 1  # samples 0, step, ... below L-1, plus L-1
+    if keep_last:
+        n_kept = (L - 1 + step - 1) // step + 1  # samples 0, step, ... below L-1, plus L-1
+    else:
+        n_kept = (L + step - 1) // step  # samples 0, step, ... up to L-1
     Tn = int(n_kept.max())
     j = torch.arange(Tn, device=demos.device).unsqueeze(0)
-    src = torch.minimum(j * step, (L - 1).unsqueeze(1))  # the last kept index of each row is L-1
-    src = torch.where(j < n_kept.unsqueeze(1), src, (L - 1).unsqueeze(1))
+    src = torch.minimum(j * step, (L - 1).unsqueeze(1))  # with keep_last, the last kept index of a row is L-1
+    last = src.gather(1, (n_kept - 1).unsqueeze(1))
+    src = torch.where(j < n_kept.unsqueeze(1), src, last)
     if (n_kept < MIN_SAMPLES).any():
         i = int(torch.nonzero(n_kept < MIN_SAMPLES)[0])
         raise TooFewSamplesError(f"keeps {int(n_kept[i])} samples after sub-sampling by {step}", i)
