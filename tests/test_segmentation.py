@@ -394,3 +394,24 @@ def test_hyperparameter_step_redraws_auxiliary_transition_weights():
     off = (1 - f.unsqueeze(-1) * f.unsqueeze(-2)) * (1 - torch.eye(run.F.shape[-1], dtype=F64))  # unowned, j != k
     ratio = (run.eta * off).sum((1, 2, 3)) / off.sum((1, 2, 3)) / run.alpha  # E[eta_jk] = alpha off the diagonal
     assert abs(float(ratio.mean()) - 1.0) < 0.05, float(ratio.mean())
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_synthetic_steps_follow_the_hmm_state_switches(seed):
+    # Steps are runs of HMM states: every boundary lies within the local refinement radius of a switch of the
+    # sampled state sequence, so the corners are found only if the sampler's switches are near them. At a coarse
+    # resolution (max_samples=30, ~7 points per leg) a labeller that ignores the data (a new label every few
+    # points) leaves corners out of reach of every candidate; the BP-GM-HMM puts its switches at the corners.
+    W = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.0, 2.0]], dtype=F64)
+    syn = multi_step_demos(torch.Generator().manual_seed(seed), waypoints=W, n_demos=3, samples_per_step=60,
+                           profile="constant")  # fmt: skip
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), max_samples=30, min_length=0.02, **FAST)
+    assert seg.n_steps == 4
+    for i in range(3):
+        switches = torch.tensor(seg.info["hmm_switches"][i], dtype=torch.long)
+        torch.testing.assert_close(runs(seg.states[i])[0][1:], switches)  # the switches of the returned states
+        inner = seg.boundaries[i, 1:-1]
+        dist = (inner.unsqueeze(-1) - switches.unsqueeze(0)).abs().amin(-1)
+        assert int(dist.max()) <= seg.info["refine_radius"][i]
+    err = boundary_errors(seg, syn.switch_times, syn.demos.lengths)
+    assert float(err.max()) <= 0.035, err

@@ -9,29 +9,38 @@ Notation:
     subtask space A_m: mixture of the emission Gaussians of the states step m visits, weighted by how many of the
         step's samples each state explains; log p(x | A_m) in :meth:`Segmentation.log_density`.
 
-Segment-level model (why the HMM's runs are post-processed). A Gaussian emission fits a long straight or
-gently curved leg better with several states than with one (the density of a uniform line piece doubles when
-it is halved), and a minimum-jerk leg's dwell near a corner forms a state that straddles the corner. So the runs
-of the HMM are treated as candidate steps and a step is defined at the segment level as a piece of the path that
-one straight segment explains to within the spatial resolution of the model:
-    1. runs shorter than ``min_length`` are absorbed by the neighbour whose state explains them best;
-    2. adjacent steps are merged greedily while the Bayesian information criterion prefers one line to two, the
-       perpendicular residuals of a line being Gaussian with a variance floored at (tolerance x data spread)^2;
-    3. each boundary is moved to the posterior median of the change point between the two adjacent steps under
-       the two-line model (a corner), at full resolution;
-    4. all sequences get the same number of steps (the most frequent count, ties to the larger): extra steps
-       are merged, missing steps split at their best change point. Steps are matched across sequences by their
-       order only, so a demonstration that skips a step has one of its steps split in two to reach the
-       consensus count; this is reported (:class:`SegmentationWarning`, ``info["forced_to_consensus"]``), as is
-       the last-resort equal cut of a sequence too short to split (``info["equal_cut_fallback"]``).
+Steps are runs of HMM states (NOTES.md sec. 2); the line model only decides which adjacent runs are merged.
+A Gaussian emission fits a long straight or gently curved leg better with several states than with one (the
+density of a uniform line piece doubles when it is halved), and a minimum-jerk leg's dwell near a corner forms a
+state that straddles the corner. So:
+    1. runs shorter than ``min_length`` are absorbed by the neighbour whose state explains them best; the starts
+       of the remaining runs are the HMM's state switches (``info["hmm_switches"]``, full resolution), the only
+       candidate step boundaries;
+    2. merging criterion: adjacent runs are merged greedily while the Bayesian information criterion prefers one
+       line to two (the union is one straight leg), the perpendicular residuals of a line being Gaussian with a
+       variance floored at (tolerance x data spread)^2. A merge removes a switch; it never adds one;
+    3. all sequences get the same number of steps (the most frequent count, ties to the larger): extra steps
+       are merged (same criterion), missing steps are split at the remaining HMM switch that lowers the two-line
+       residual most (at the best change point only for a step that contains no switch). Steps are matched
+       across sequences by their order only, so a demonstration that skips a step has one of its steps split in
+       two to reach the consensus count; this is reported (:class:`SegmentationWarning`,
+       ``info["forced_to_consensus"]``), as is the last-resort equal cut of a sequence too short to split
+       (``info["equal_cut_fallback"]``);
+    4. local refinement: each boundary is moved towards the posterior median of the change point between its
+       two steps under the two-line model (a corner), but by at most ``info["refine_radius"]`` = max(min_length,
+       subsampling stride) samples from its HMM switch (the switch is only known to the stride). The one
+       exception is a corner state, a run next to the boundary whose samples both adjacent lines explain (mean
+       squared perpendicular distance to the other step's line <= 4 floor variances, e.g. the state that
+       straddles a minimum-jerk corner): the boundary may move anywhere inside that run. The line model never
+       places a boundary away from the HMM's switches otherwise.
 
 The line stages need d >= 2 (a 1-D path is a line everywhere): :func:`segment` raises
 :class:`~lfd_torch.errors.InvalidArgumentError` for 1-D data; :class:`FixedSegmenter` and :class:`NoSegmenter`
 accept it.
 
-Resolution. The BIC merge of stage 2 runs on the subsampled sequences (at most ``max_samples`` points), so
-``max_samples`` is a resolution parameter, not only a speed knob: more points make the evidence for a bend
-stronger (the BIC penalty grows like log n, the misfit of one line for a curved piece like n), and a curved
+Resolution. The HMM and the BIC merge of stage 2 run on the subsampled sequences (at most ``max_samples``
+points), so ``max_samples`` is a resolution parameter, not only a speed knob: more points make the evidence for a
+bend stronger (the BIC penalty grows like log n, the misfit of one line for a curved piece like n), and a curved
 path can then be cut into more steps. Keep it fixed when comparing step counts across runs.
 """
 
@@ -328,7 +337,15 @@ def _prefix_line_sse(x: Tensor) -> tuple[Tensor, Tensor]:
     return left, right
 
 
-def _best_split(x: Tensor, min_len: int, *, posterior_median: bool = False) -> tuple[int, float]:
+def _best_split(
+    x: Tensor,
+    min_len: int,
+    *,
+    posterior_median: bool = False,
+    around: int | None = None,
+    radius: int = 0,
+    limits: tuple[int, int] | None = None,
+) -> tuple[int, float]:
     """Change point t (min_len <= t <= n - min_len) of two lines fitted to x[:t] and x[t:], and its SSE.
 
     By default t minimises the summed perpendicular squared residuals. With ``posterior_median`` it is the median
@@ -336,11 +353,20 @@ def _best_split(x: Tensor, min_len: int, *, posterior_median: bool = False) -> t
     residual variance at the optimum: where the two lines explain a stretch equally well (a minimum-jerk dwell at
     a corner, where samples pile up within noise of the corner) the estimate sits in the middle of that stretch
     instead of at an arbitrary noise-driven minimum.
+
+    With ``around`` the estimate is clamped to ``around +- radius`` (a local refinement of a given boundary, e.g.
+    an HMM state switch, which may move it by at most ``radius`` samples); ``limits`` (lo, hi), when given,
+    replaces that interval.
     """
     n, d = x.shape
     left, right = _prefix_line_sse(x)
     total = left + right
     lo, hi = min_len, n - min_len
+    if around is not None:
+        t, _ = _best_split(x, min_len, posterior_median=posterior_median)
+        a_lo, a_hi = limits if limits is not None else (around - radius, around + radius)
+        t = max(min(max(t, a_lo), a_hi, n - 1), 1)
+        return t, float(total[t])
     if hi < lo:
         return n // 2, float(total[n // 2])
     window = total[lo : hi + 1]
@@ -401,8 +427,15 @@ def _merge_steps(x: Tensor, bounds: list[int], floor_var: float, target: int | N
     return bounds
 
 
-def _split_steps(x: Tensor, bounds: list[int], target: int, min_len: int) -> list[int]:
-    """Split the step whose best change point lowers the line SSE most, until ``target`` steps."""
+def _split_steps(
+    x: Tensor, bounds: list[int], target: int, min_len: int, candidates: Sequence[int] | None = None
+) -> list[int]:
+    """Split the step whose best change point lowers the line SSE most, until ``target`` steps.
+
+    With ``candidates`` (the HMM state switches of the sequence) a step is split only at one of them (the one
+    that lowers the two-line SSE most); a step without an admissible candidate falls back to its best change
+    point.
+    """
     bounds = list(bounds)
     while len(bounds) - 1 < target:
         best, best_gain, best_t = None, -math.inf, 0
@@ -410,7 +443,14 @@ def _split_steps(x: Tensor, bounds: list[int], target: int, min_len: int) -> lis
             a, b = bounds[j], bounds[j + 1]
             if b - a < 2 * min_len:
                 continue
-            t, sse = _best_split(x[a:b], min_len)
+            inside = [c - a for c in (candidates or ()) if a + min_len <= c <= b - min_len]
+            if inside:
+                left, right = _prefix_line_sse(x[a:b])
+                tot = left + right
+                t = min(inside, key=lambda c: float(tot[c]))
+                sse = float(tot[t])
+            else:
+                t, sse = _best_split(x[a:b], min_len)
             gain = float(_line_sse(x[a:b])) - sse
             if gain > best_gain:
                 best, best_gain, best_t = j, gain, a + t
@@ -420,20 +460,61 @@ def _split_steps(x: Tensor, bounds: list[int], target: int, min_len: int) -> lis
     return bounds
 
 
-def _refine(x: Tensor, bounds: list[int], min_len: int) -> list[int]:
-    """Move every inner boundary to the best change point between its neighbours' outer ends (left to right)."""
+def _line_perp_sq(points: Tensor, line_of: Tensor) -> float:
+    """Mean squared perpendicular distance of points (n, d) to the best line through line_of (m, d)."""
+    mean = line_of.mean(0)
+    c = line_of - mean
+    direction = torch.linalg.eigh(c.T @ c)[1][:, -1]
+    q = points - mean
+    return float(((q * q).sum(-1) - (q @ direction) ** 2).mean())
+
+
+def _refine(
+    x: Tensor,
+    bounds: list[int],
+    min_len: int,
+    radius: int | None = None,
+    switches: Sequence[int] | None = None,
+    floor_var: float = 0.0,
+) -> list[int]:
+    """Move every inner boundary to the two-line change point between its neighbours' outer ends (left to right).
+
+    With ``radius`` a boundary moves by at most ``radius`` samples (it stays at the HMM state switch it came from,
+    refined locally); None searches the whole span between the neighbours. With ``switches`` (the HMM state
+    switches of the sequence) the boundary may also move across the whole HMM run next to it when that run is a
+    corner state: its samples lie within twice the residual floor (mean squared perpendicular distance
+    <= 4 floor_var) of the line of the step on the other side too, i.e. both steps explain it (a minimum-jerk dwell
+    at a corner).
+    """
     bounds = list(bounds)
+    sw = sorted(set(switches or ()))
     for j in range(1, len(bounds) - 1):
-        a, c = bounds[j - 1], bounds[j + 1]
+        a, b, c = bounds[j - 1], bounds[j], bounds[j + 1]
         if c - a < 2 * min_len:
             continue
-        t, _ = _best_split(x[a:c], min_len, posterior_median=True)
+        if radius is None:
+            t, _ = _best_split(x[a:c], min_len, posterior_median=True)
+        else:
+            lo, hi = b - radius, b + radius
+            if sw:
+                p = max([s for s in sw if s < b] + [a])  # HMM run [p, b) left of the boundary, inside step j - 1
+                q = min([s for s in sw if s > b] + [c])  # HMM run [b, q) right of it, inside step j
+                if b - p >= 2 and c - b >= 2 and _line_perp_sq(x[p:b], x[b:c]) <= 4.0 * floor_var:
+                    lo = min(lo, p)
+                if q - b >= 2 and b - a >= 2 and _line_perp_sq(x[b:q], x[a:b]) <= 4.0 * floor_var:
+                    hi = max(hi, q)
+            t, _ = _best_split(x[a:c], min_len, posterior_median=True, around=b - a, limits=(lo - a, hi - a))
         bounds[j] = a + t
     return bounds
 
 
 def _consensus(
-    seqs: list[Tensor], bounds_all: list[list[int]], floor_var: float, min_length: float
+    seqs: list[Tensor],
+    bounds_all: list[list[int]],
+    floor_var: float,
+    min_length: float,
+    candidates: list[list[int]] | None = None,
+    radius: list[int] | None = None,
 ) -> tuple[list[list[int]], dict[int, int], list[int]]:
     """Bring every sequence to the consensus step count M (the most frequent count, ties to the larger).
 
@@ -445,6 +526,10 @@ def _consensus(
         bounds_all: N lists of step starts plus T_i.
         floor_var: residual variance floor of the line model.
         min_length: the ``min_length`` argument of :func:`segment`.
+        candidates: per sequence, the HMM state switches (full resolution) at which a missing step may be split;
+            None splits at the best change point anywhere.
+        radius: per sequence, the most samples the final refinement may move a boundary (None: anywhere between
+            its neighbours).
 
     Returns:
         The refined bounds (all with M + 1 entries), {sequence: its own count} for the sequences forced to M, and
@@ -464,12 +549,17 @@ def _consensus(
         if len(b) - 1 > M:
             b = _merge_steps(xf, b, floor_var, target=M)
         elif len(b) - 1 < M:
-            b = _split_steps(xf, b, M, min_len)
+            b = _split_steps(xf, b, M, min_len, None if candidates is None else candidates[i])
         if len(b) - 1 != M:  # too short to split further: keep a consistent count by equal cuts
             Ti = xf.shape[0]
             b = [round(j * Ti / M) for j in range(M)] + [Ti]
             equal_cut.append(i)
-        out.append(_refine(xf, b, min_len))
+        out.append(
+            _refine(
+                xf, b, min_len, None if radius is None else radius[i],
+                None if candidates is None else candidates[i], floor_var,
+            )  # fmt: skip
+        )
     if forced:
         warnings.warn(
             f"sequences {sorted(forced)} had {[forced[i] for i in sorted(forced)]} steps and were forced to the "
@@ -598,7 +688,10 @@ def segment(
     Returns:
         Segmentation. ``info["forced_to_consensus"]`` maps each sequence whose own step count differed from the
         consensus count M to that count; ``info["equal_cut_fallback"]`` lists the sequences that had to be cut
-        evenly into M steps. Either case also emits a :class:`SegmentationWarning`.
+        evenly into M steps. Either case also emits a :class:`SegmentationWarning`. ``info["hmm_switches"]``
+        lists, per sequence, the HMM state switches (full resolution, after absorbing short runs) from which the
+        boundaries are taken, and ``info["refine_radius"]`` how far the local refinement may move a boundary from
+        its switch (except across a corner state, see the module docstring).
 
     Raises:
         InvalidArgumentError: 1-D data (the segment-level line model needs d >= 2) or bad hyperparameters.
@@ -636,6 +729,8 @@ def segment(
     state_mean, state_cov = result.mean, result.covariance
     bounds_all: list[list[int]] = []
     states_full: list[Tensor] = []
+    switches: list[list[int]] = []  # HMM state switches (after absorbing short runs), full resolution
+    radii: list[int] = []  # how far the local refinement may move a boundary from its switch
     for i, (xs, xf, k) in enumerate(zip(seqs, seqs_full, strides)):
         Ti = xf.shape[0]
         min_len = resolve_min_length(min_length, Ti)
@@ -646,14 +741,16 @@ def segment(
         if full.shape[0] < Ti:
             full = torch.cat([full, full[-1:].expand(Ti - full.shape[0])])
         starts, _, _ = runs(full)
+        switches.append(starts[1:].tolist())
+        radii.append(max(min_len, k))
         bounds = starts.tolist() + [Ti]
         bounds = _merge_steps(xs, [min(b // k, xs.shape[0]) if b < Ti else xs.shape[0] for b in bounds], floor_var)
-        bounds = [b * k for b in bounds[:-1]] + [Ti]
-        bounds = _refine(xf, bounds, min_len)
-        bounds_all.append(bounds)
+        bounds_all.append([b * k for b in bounds[:-1]] + [Ti])
         states_full.append(full)
     counts = Counter(len(b) - 1 for b in bounds_all)
-    bounds_all, forced, equal_cut = _consensus(seqs_full, bounds_all, floor_var, min_length)
+    bounds_all, forced, equal_cut = _consensus(
+        seqs_full, bounds_all, floor_var, min_length, candidates=switches, radius=radii
+    )
     info = {
         "sampler_seconds": t1 - t0,
         "postprocess_seconds": time.perf_counter() - t1,
@@ -662,6 +759,8 @@ def segment(
         "forced_to_consensus": forced,
         "equal_cut_fallback": equal_cut,
         "straightness_floor_var": floor_var,
+        "hmm_switches": switches,
+        "refine_radius": radii,
     }
     return _assemble(
         demos, bounds_all, states_full, state_mean.to(demos.dtype), state_cov.to(demos.dtype), result, info
