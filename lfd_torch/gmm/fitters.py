@@ -8,17 +8,23 @@ velocities (EM, EM+BIC) accept and ignore ``x_dot``.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import torch
 from torch import Tensor
 
+from lfd_torch.errors import InvalidArgumentError
 from lfd_torch.gmm.damm import fit_damm
 from lfd_torch.gmm.em import fit_em, fit_em_bic
 from lfd_torch.gmm.model import GMM
 from lfd_torch.gmm.pcgmm import fit_pcgmm
 
 __all__ = ["PCGMMFitter", "DAMMFitter", "EMFitter", "EMBICFitter"]
+
+
+def _hyperparameters(fitter: object) -> dict[str, object]:
+    """The dataclass fields of a fitter as keyword arguments of its fit function (one source of truth)."""
+    return {f.name: getattr(fitter, f.name) for f in fields(fitter)}  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)
@@ -39,12 +45,8 @@ class PCGMMFitter:
     def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
         """Fit to positions x (N, d) and velocities x_dot (N, d) (required)."""
         if x_dot is None:
-            raise TypeError("PC-GMM needs velocities x_dot")
-        return fit_pcgmm(
-            x, x_dot, generator=generator, length_scale=self.length_scale, alpha=self.alpha, kappa0=self.kappa0,
-            nu0_offset=self.nu0_offset, psi_scale=self.psi_scale, n_iter=self.n_iter,
-            min_cluster_size=self.min_cluster_size, max_points=self.max_points, reg_covar=self.reg_covar,
-        )  # fmt: skip
+            raise InvalidArgumentError("PC-GMM needs velocities x_dot")
+        return fit_pcgmm(x, x_dot, generator=generator, **_hyperparameters(self))
 
 
 @dataclass(frozen=True)
@@ -64,12 +66,8 @@ class DAMMFitter:
     def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
         """Fit to positions x (N, d) and velocities x_dot (N, d) (required)."""
         if x_dot is None:
-            raise TypeError("DAMM needs velocities x_dot")
-        return fit_damm(
-            x, x_dot, generator=generator, alpha=self.alpha, kappa=self.kappa, kappa0=self.kappa0,
-            nu0_offset=self.nu0_offset, psi_scale=self.psi_scale, n_iter=self.n_iter,
-            min_cluster_size=self.min_cluster_size, reg_covar=self.reg_covar,
-        )  # fmt: skip
+            raise InvalidArgumentError("DAMM needs velocities x_dot")
+        return fit_damm(x, x_dot, generator=generator, **_hyperparameters(self))
 
 
 @dataclass(frozen=True)
@@ -86,10 +84,7 @@ class EMFitter:
 
     def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
         """Fit to positions x (N, d); ``x_dot`` is ignored."""
-        return fit_em(
-            x, self.n_components, generator=generator, n_init=self.n_init, max_iter=self.max_iter, tol=self.tol,
-            reg_covar=self.reg_covar, kmeans_iter=self.kmeans_iter,
-        )  # fmt: skip
+        return fit_em(x, generator=generator, **_hyperparameters(self))
 
 
 @dataclass(frozen=True)
@@ -109,7 +104,4 @@ class EMBICFitter:
 
     def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
         """Fit to positions x (N, d); ``x_dot`` is ignored."""
-        return fit_em_bic(
-            x, k_range=self.k_range, generator=generator, n_init=self.n_init, max_iter=self.max_iter, tol=self.tol,
-            reg_covar=self.reg_covar, kmeans_iter=self.kmeans_iter,
-        )  # fmt: skip
+        return fit_em_bic(x, generator=generator, **_hyperparameters(self))
