@@ -17,8 +17,8 @@ from scipy.sparse.csgraph import connected_components
 from conftest import requires_cuda
 from lfd_torch.errors import NonFiniteError, ShapeMismatchError, TooFewSamplesError
 from lfd_torch.gmm import GMM, InvalidGMMError, damm_labels, fit_damm, fit_pcgmm, pcgmm_labels
-from lfd_torch.gmm._niw import NIWPrior, niw_log_marginal_torch
-from lfd_torch.gmm.damm import sample_gamma, vmf_log_normalizer
+from lfd_torch.gmm.damm import vmf_log_normalizer
+from lfd_torch.gmm.niw import NIWPrior, niw_log_marginal_likelihood, sufficient_statistics
 from lfd_torch.gmm.pcgmm import _ddcrp_gibbs, _flat_features, _LogMarginal, prior_weights
 
 F64 = torch.float64
@@ -65,33 +65,30 @@ def test_adjusted_rand_index_reference_values() -> None:
 
 
 # ---------------------------------------------------------------------------------------------- NIW marginal
-def test_niw_marginal_equals_chain_of_student_t_predictives() -> None:
-    rng = np.random.default_rng(0)
-    d, kappa0, nu0 = 2, 0.7, 5.0
-    psi0 = np.array([[2.0, 0.3], [0.3, 1.0]])
-    mu0 = np.array([0.5, -0.2])
-    y = rng.normal(size=(6, d))
-    prior = NIWPrior(mu0, kappa0, nu0, psi0)
-    const, _ = prior.tables(10)
-    got = prior.log_marginal(np.array([6.0]), y.sum(0)[None], (y.T @ y)[None], const)[0]
-    # reference: p(y_1..n) = prod_i p(y_i | y_<i), each a multivariate Student t (Murphy 2007, eq. 258)
-    ref, mu, kap, nu, psi = 0.0, mu0.copy(), kappa0, nu0, psi0.copy()
-    for yi in y:
-        dof = nu - d + 1
-        ref += scipy.stats.multivariate_t(loc=mu, shape=psi * (kap + 1) / (kap * dof), df=dof).logpdf(yi)
-        mu_new = (kap * mu + yi) / (kap + 1)
-        psi = psi + kap / (kap + 1) * np.outer(yi - mu, yi - mu)
-        mu, kap, nu = mu_new, kap + 1, nu + 1
-    assert got == pytest.approx(ref, rel=1e-10)
-    # torch version (prior mean 0) against the numpy one
-    p0 = NIWPrior(np.zeros(d), kappa0, nu0, psi0)
-    c0, _ = p0.tables(10)
-    ref0 = p0.log_marginal(np.array([6.0]), y.sum(0)[None], (y.T @ y)[None], c0)[0]
-    t = niw_log_marginal_torch(
-        torch.tensor([6.0, 0.0], dtype=F64), torch.tensor(np.stack([y.sum(0), np.zeros(d)])),
-        torch.tensor(np.stack([y.T @ y, np.zeros((d, d))])), kappa0=kappa0, nu0=nu0, psi0=torch.tensor(psi0),
-    )  # fmt: skip
-    assert float(t[0]) == pytest.approx(ref0, rel=1e-12) and float(t[1]) == 0.0
+def _pcgmm_prior(d: int, c: float, kappa0: float = 1.0, nu0_offset: float = 2.0) -> NIWPrior:
+    """The prior form the sampler uses: mean 0, scale c I."""
+    return NIWPrior(torch.zeros(d, dtype=F64), torch.tensor(kappa0, dtype=F64), torch.tensor(d + nu0_offset, dtype=F64),
+                    c * torch.eye(d, dtype=F64))  # fmt: skip
+
+
+@pytest.mark.parametrize("d", [1, 2, 3, 4])
+def test_sampler_marginal_equals_the_niw_kernel(d: int) -> None:
+    """The sampler's float fast path (tabulated c(n), written-out determinant) is the shared NIW kernel; the
+    kernel itself is checked against Student-t predictives in test_gmm.py."""
+    rng = np.random.default_rng(d)
+    prior = _pcgmm_prior(d, 0.8, kappa0=0.7, nu0_offset=3.0)
+    lm = _LogMarginal(prior, 20)
+    y = rng.normal(size=(9, d)) + 0.5
+    feats = _flat_features(y)
+    groups = [slice(0, 4), slice(4, 9), slice(0, 9)]
+    onehot = torch.zeros(9, 3, dtype=F64)
+    for k, g in enumerate(groups):
+        onehot[g, k] = 1.0
+    ref = niw_log_marginal_likelihood(prior, *sufficient_statistics(torch.tensor(y), onehot))
+    for k, g in enumerate(groups):
+        assert lm(feats[g].sum(0).tolist()) == pytest.approx(float(ref[k]), rel=1e-12)
+    assert lm.merged(feats[:4].sum(0).tolist(), feats[4:].sum(0).tolist()) == pytest.approx(float(ref[2]), rel=1e-12)
+    np.testing.assert_allclose(lm.batch(np.stack([feats[g].sum(0) for g in groups])), ref.numpy(), rtol=1e-12)
 
 
 # ---------------------------------------------------------------------------------------------- ddCRP sampler
@@ -109,7 +106,7 @@ def test_ddcrp_gibbs_matches_exact_posterior_by_enumeration() -> None:
     W = rng.uniform(0.1, 1.0, size=(M, M))
     np.fill_diagonal(W, 0.4)
     W[0, 3] = 0.0  # a forbidden link (opposite velocities)
-    prior = NIWPrior(np.zeros(d), 1.0, d + 2.0, 0.5 * np.eye(d))
+    prior = _pcgmm_prior(d, 0.5)
     lm = _LogMarginal(prior, 2 * M)
     feats = _flat_features(y)
     exact: Counter[tuple[int, ...]] = Counter()
@@ -299,15 +296,6 @@ def test_pcgmm_invalid_length_scale(generator: torch.Generator) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- DAMM kernels
-def test_sample_gamma_moments(generator: torch.Generator) -> None:
-    shape = torch.tensor([0.3, 1.0, 2.5, 40.0, 500.0], dtype=F64).repeat(40_000, 1)
-    g = sample_gamma(shape, generator=generator)
-    a = shape[0]
-    assert (g > 0).all()
-    torch.testing.assert_close(g.mean(0), a, rtol=0.02, atol=0.01)
-    torch.testing.assert_close(g.var(0), a, rtol=0.05, atol=0.01)
-
-
 @pytest.mark.parametrize("d", [2, 3, 4])
 def test_vmf_normaliser_integrates_to_one(d: int) -> None:
     for kappa in (0.0, 0.5, 7.0, 60.0):

@@ -1,4 +1,6 @@
-"""Kernels of the BP-GM-HMM against independent references (enumeration, closed forms, scipy, Monte Carlo)."""
+"""Kernels of the BP-GM-HMM against independent references (enumeration, closed forms, scipy, Monte Carlo).
+
+The NIW and Gaussian emission kernels are those of lfd_torch.gmm, tested in test_gmm.py."""
 
 from __future__ import annotations
 
@@ -10,17 +12,6 @@ import pytest
 import torch
 from scipy import stats
 
-from lfd_torch.segmentation.emissions import (
-    NIWPrior,
-    gaussian_log_density,
-    niw_log_density,
-    niw_log_marginal_likelihood,
-    niw_posterior,
-    niw_prior_from_data,
-    sample_gamma,
-    sample_niw,
-    sufficient_statistics,
-)
 from lfd_torch.segmentation.features import ibp_log_prior, sample_ibp, shared_log_odds
 from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood
 from lfd_torch.segmentation.transitions import (
@@ -118,83 +109,6 @@ def test_backward_sampling_matches_posterior(generator):
         assert (draws[:, b, L:] == draws[:, b, L - 1 : L]).all()
 
 
-def _reference_posterior(m0, k0, nu0, psi0, x):
-    """Murphy (2007) eqs. 250-254 written out in numpy."""
-    n = x.shape[0]
-    xbar = x.mean(0)
-    S = (x - xbar).T @ (x - xbar)
-    kn = k0 + n
-    mn = (k0 * m0 + n * xbar) / kn
-    nun = nu0 + n
-    psin = psi0 + S + (k0 * n / kn) * np.outer(xbar - m0, xbar - m0)
-    return mn, kn, nun, psin
-
-
-def test_niw_posterior_closed_form(generator):
-    x = torch.randn(40, 3, generator=generator, dtype=F64) * torch.tensor([1.0, 2.0, 0.5], dtype=F64) + 1.0
-    prior = niw_prior_from_data(x, covariance_scale=0.3, mean_pseudo_count=0.5, extra_dof=2.0)
-    labels = torch.randint(2, (40,), generator=generator)
-    onehot = torch.nn.functional.one_hot(labels, 2).to(F64)
-    post = niw_posterior(prior, *sufficient_statistics(x, onehot))
-    for k in range(2):
-        xk = x[labels == k].numpy()
-        mn, kn, nun, psin = _reference_posterior(prior.mean.numpy(), float(prior.kappa), float(prior.dof), prior.scale.numpy(), xk)
-        np.testing.assert_allclose(post.mean[k].numpy(), mn, rtol=1e-12)
-        np.testing.assert_allclose(float(post.kappa[k]), kn)
-        np.testing.assert_allclose(float(post.dof[k]), nun)
-        np.testing.assert_allclose(post.scale[k].numpy(), psin, rtol=1e-10, atol=1e-12)
-
-
-def test_niw_density_matches_scipy(generator):
-    x = torch.randn(30, 2, generator=generator, dtype=F64)
-    prior = niw_prior_from_data(x, covariance_scale=0.2, extra_dof=3.0)
-    for _ in range(3):
-        mu, S = sample_niw(prior, generator)
-        ref = stats.invwishart(df=float(prior.dof), scale=prior.scale.numpy()).logpdf(S.numpy()) + stats.multivariate_normal(
-            prior.mean.numpy(), S.numpy() / float(prior.kappa)
-        ).logpdf(mu.numpy())
-        assert float(niw_log_density(mu, S, prior)) == pytest.approx(ref, rel=1e-10)
-        xs = x[:5]
-        ref_g = stats.multivariate_normal(mu.numpy(), S.numpy()).logpdf(xs.numpy())
-        np.testing.assert_allclose(gaussian_log_density(xs, mu[None], S[None])[:, 0].numpy(), ref_g, rtol=1e-10)
-
-
-def test_niw_marginal_likelihood_candidate_identity(generator):
-    # Chib's identity p(X) = p(X | theta) p(theta) / p(theta | X) holds for every theta.
-    x = torch.randn(7, 2, generator=generator, dtype=F64)
-    prior = niw_prior_from_data(torch.randn(50, 2, generator=generator, dtype=F64), covariance_scale=0.5)
-    stats_ = sufficient_statistics(x, torch.ones(7, 1, dtype=F64))
-    post = niw_posterior(prior, *stats_)
-    post1 = NIWPrior(post.mean[0], post.kappa[0], post.dof[0], post.scale[0])
-    for _ in range(3):
-        mu, S = sample_niw(post1, generator)
-        chib = gaussian_log_density(x, mu[None], S[None]).sum() + niw_log_density(mu, S, prior) - niw_log_density(mu, S, post1)
-        torch.testing.assert_close(niw_log_marginal_likelihood(prior, *stats_)[0], chib)
-
-
-def test_sample_niw_moments(generator):
-    prior = NIWPrior(
-        mean=torch.tensor([1.0, -2.0], dtype=F64), kappa=torch.tensor(2.0, dtype=F64), dof=torch.tensor(7.0, dtype=F64),
-        scale=torch.tensor([[2.0, 0.5], [0.5, 1.0]], dtype=F64),
-    )  # fmt: skip
-    n = 40000
-    batch = NIWPrior(prior.mean.expand(n, 2), prior.kappa, prior.dof, prior.scale.expand(n, 2, 2))
-    mu, S = sample_niw(batch, generator)
-    torch.testing.assert_close(S.mean(0), prior.scale / (7.0 - 2 - 1), rtol=0.03, atol=0.01)
-    torch.testing.assert_close(mu.mean(0), prior.mean, rtol=0, atol=0.02)
-    # Cov(mu) = E[Sigma] / kappa
-    torch.testing.assert_close(torch.cov(mu.T), prior.scale / 4.0 / 2.0, rtol=0.05, atol=0.01)
-
-
-@pytest.mark.parametrize("shape", [0.3, 1.0, 4.5])
-def test_sample_gamma_moments(generator, shape):
-    a = torch.full((50000,), shape, dtype=F64)
-    g = sample_gamma(a, generator)
-    assert float(g.mean()) == pytest.approx(shape, rel=0.03)
-    assert float(g.var()) == pytest.approx(shape, rel=0.06)
-    assert stats.kstest(g.numpy(), stats.gamma(shape).cdf).pvalue > 1e-3
-
-
 def test_transition_posterior_mean(generator):
     K = 3
     features = torch.tensor([True, False, True])
@@ -285,11 +199,14 @@ def test_segmentation_package_creates_tensors_on_an_explicit_device():
     import ast
     from pathlib import Path
 
+    import lfd_torch.gmm.gaussian
+    import lfd_torch.gmm.niw
     import lfd_torch.segmentation as pkg
 
     factories = {"tensor", "zeros", "ones", "arange", "full", "eye", "empty", "rand", "randn", "randint", "linspace"}
     missing = []
-    for path in sorted(Path(pkg.__file__).parent.glob("*.py")):
+    kernels = [Path(lfd_torch.gmm.niw.__file__), Path(lfd_torch.gmm.gaussian.__file__)]  # the emission kernels
+    for path in sorted(Path(pkg.__file__).parent.glob("*.py")) + kernels:
         for node in ast.walk(ast.parse(path.read_text())):
             if (
                 isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in factories

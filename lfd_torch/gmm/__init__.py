@@ -7,6 +7,9 @@ Notation:
     GMM: weights (K,), means (K, d), covariances (K, d, d)
 
 Modules:
+    gaussian     the Gaussian log-density kernel (:func:`gaussian_log_density`, :func:`gaussian_log_normalizer`)
+    niw          the Normal-inverse-Wishart kernels (prior, posterior, marginal likelihood, density, draws), shared
+                 with :mod:`lfd_torch.segmentation`
     model        the :class:`GMM` dataclass (densities, posteriors, state dicts)
     em           EM with k-means++ starts (:func:`fit_em`) and BIC model selection (:func:`fit_em_bic`)
     pcgmm        PC-GMM: ddCRP prior with position/direction similarity, collapsed Gibbs (:func:`fit_pcgmm`)
@@ -18,7 +21,21 @@ Modules:
 from lfd_torch.gmm.damm import DAMMResult, damm_labels, fit_damm
 from lfd_torch.gmm.em import bic, fit_em, fit_em_bic, kmeans_plus_plus, n_parameters, refine_em
 from lfd_torch.gmm.fitters import DAMMFitter, EMBICFitter, EMFitter, PCGMMFitter
+from lfd_torch.gmm.gaussian import gaussian_log_density, gaussian_log_normalizer
 from lfd_torch.gmm.model import GMM, InvalidGMMError, check_samples
+from lfd_torch.gmm.niw import (
+    NIWPrior,
+    inverse_wishart_log_density,
+    log_multigamma,
+    niw_log_density,
+    niw_log_marginal_likelihood,
+    niw_log_marginal_normalizer,
+    niw_posterior,
+    niw_prior_from_data,
+    sample_gamma,
+    sample_niw,
+    sufficient_statistics,
+)
 from lfd_torch.gmm.pcgmm import PCGMMResult, fit_pcgmm, pcgmm_labels
 from lfd_torch.gmm.postprocess import merge_small_components, order_by_attractor, regularize_covariances
 
@@ -45,4 +62,17 @@ __all__ = [
     "DAMMFitter",
     "EMFitter",
     "EMBICFitter",
+    "gaussian_log_density",
+    "gaussian_log_normalizer",
+    "NIWPrior",
+    "niw_prior_from_data",
+    "sufficient_statistics",
+    "niw_posterior",
+    "niw_log_marginal_normalizer",
+    "niw_log_marginal_likelihood",
+    "niw_log_density",
+    "inverse_wishart_log_density",
+    "sample_niw",
+    "sample_gamma",
+    "log_multigamma",
 ]

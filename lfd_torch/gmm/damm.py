@@ -28,7 +28,9 @@ K therefore starts at 1 and is inferred. The labels with the highest collapsed l
 marginal likelihoods) over the iterations are kept; clusters smaller than ``min_cluster_size`` are merged
 into the nearest one and the GMM on positions is the maximum-likelihood fit of that partition.
 
-All random numbers come from ``generator`` (Gamma variates by Marsaglia-Tsang from its normals/uniforms).
+All random numbers come from ``generator`` (Gamma variates by Marsaglia-Tsang from its normals/uniforms). The NIW
+kernels (posterior, marginal, draws) and the Gaussian log-density are those of :mod:`lfd_torch.gmm.niw` and
+:mod:`lfd_torch.gmm.gaussian`.
 """
 
 from __future__ import annotations
@@ -39,10 +41,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from lfd_torch.gmm.gaussian import gaussian_log_density
 from lfd_torch.gmm.model import GMM, InvalidGMMError, _gmm_from_dense_labels, check_samples
+from lfd_torch.gmm.niw import NIWPrior, niw_log_marginal_likelihood, niw_posterior, sample_gamma, sample_niw
 from lfd_torch.gmm.postprocess import merge_small_components
 
-__all__ = ["fit_damm", "damm_labels", "DAMMResult", "sample_gamma", "vmf_log_normalizer"]
+__all__ = ["fit_damm", "damm_labels", "DAMMResult", "vmf_log_normalizer"]
 
 MIN_SAMPLES_DAMM = 3
 
@@ -60,41 +64,6 @@ class DAMMResult:
     labels: Tensor
     log_posterior: Tensor
     n_components: Tensor
-
-
-def sample_gamma(shape: Tensor, *, generator: torch.Generator, max_rounds: int = 64) -> Tensor:
-    """Gamma(shape, 1) variates by Marsaglia & Tsang (2000), vectorised, using only ``generator``.
-
-    Args:
-        shape: (...,) positive shape parameters.
-        generator: torch generator on shape's device.
-        max_rounds: rejection rounds (acceptance is >= 95 % per round; the rare leftovers take the mode).
-
-    Returns:
-        (...,) tensor of variates.
-    """
-    a = shape
-    boost = a < 1
-    a1 = torch.where(boost, a + 1, a)
-    d = a1 - 1.0 / 3.0
-    c = 1.0 / torch.sqrt(9.0 * d)
-    out = torch.full_like(a1, float("nan"))
-    todo = torch.ones_like(a1, dtype=torch.bool)
-    for _ in range(max_rounds):
-        x = torch.randn(a1.shape, dtype=a1.dtype, device=a1.device, generator=generator)
-        u = torch.rand(a1.shape, dtype=a1.dtype, device=a1.device, generator=generator)
-        v = (1 + c * x) ** 3
-        ok = (v > 0) & (torch.log(u) < 0.5 * x * x + d - d * v + d * torch.log(v.clamp_min(1e-300)))
-        new = todo & ok
-        out = torch.where(new, d * v, out)
-        todo = todo & ~ok
-        if not bool(todo.any()):
-            break
-    out = torch.where(todo, d, out)
-    if bool(boost.any()):
-        u = torch.rand(a1.shape, dtype=a1.dtype, device=a1.device, generator=generator)
-        out = torch.where(boost, out * u.clamp_min(1e-300) ** (1.0 / a), out)
-    return out
 
 
 def vmf_log_normalizer(kappa: Tensor, d: int) -> Tensor:
@@ -171,35 +140,14 @@ class _Stats:
 class _Model:
     """Hyperparameters and collapsed marginals."""
 
-    def __init__(self, d: int, alpha: float, kappa: float, kappa0: float, nu0: float, psi0: Tensor):
-        self.d, self.alpha, self.kappa, self.kappa0, self.nu0, self.psi0 = d, alpha, kappa, kappa0, nu0, psi0
-        self.log_c_kappa = float(vmf_log_normalizer(torch.tensor([kappa], dtype=torch.float64), d)[0])
-        self.log_c_0 = float(vmf_log_normalizer(torch.tensor([0.0], dtype=torch.float64), d)[0])
-        j = torch.arange(d, dtype=torch.float64)
-        self._lmvg0 = float(torch.lgamma(nu0 / 2 - j / 2).sum())
-        self._logdet0 = float(torch.linalg.slogdet(psi0.cpu())[1])
-
-    def niw(self, n: Tensor, s: Tensor, Q: Tensor) -> Tensor:
-        """NIW log marginal of the positions (prior mean 0), (...,); 0 where n == 0."""
-        d = self.d
-        kn = self.kappa0 + n
-        nn = self.nu0 + n
-        P = self.psi0 + Q - s.unsqueeze(-1) * s.unsqueeze(-2) / kn[..., None, None]
-        if d == 2:
-            logdet = torch.log(P[..., 0, 0] * P[..., 1, 1] - P[..., 0, 1] * P[..., 1, 0])
-        else:
-            logdet = torch.linalg.slogdet(P)[1]
-        j = torch.arange(d, dtype=n.dtype, device=n.device)
-        lmvg = torch.lgamma(nn.unsqueeze(-1) / 2 - j / 2).sum(-1)
-        out = (
-            -n * (d / 2 * math.log(math.pi)) + lmvg - self._lmvg0 + self.nu0 / 2 * self._logdet0
-            - nn / 2 * logdet + d / 2 * (math.log(self.kappa0) - torch.log(kn))
-        )  # fmt: skip
-        return torch.where(n > 0, out, torch.zeros_like(out))
+    def __init__(self, alpha: float, kappa: float, prior: NIWPrior):
+        self.d, self.alpha, self.kappa, self.prior = prior.dim, alpha, kappa, prior
+        self.log_c_kappa = float(vmf_log_normalizer(torch.tensor([kappa], dtype=torch.float64), self.d)[0])
+        self.log_c_0 = float(vmf_log_normalizer(torch.tensor([0.0], dtype=torch.float64), self.d)[0])
 
     def log_marginal(self, st: _Stats) -> Tensor:
         """Positions (NIW) times directions (vMF with uniform prior on the mean) log marginal, (G,)."""
-        pos = self.niw(st.n, st.s, st.Q)
+        pos = niw_log_marginal_likelihood(self.prior, st.n, st.s, st.Q)
         rn = torch.linalg.vector_norm(st.R, dim=-1)
         dirs = st.nd * self.log_c_kappa + self.log_c_0 - vmf_log_normalizer(self.kappa * rn, self.d)
         return pos + torch.where(st.nd > 0, dirs, torch.zeros_like(dirs))
@@ -213,27 +161,12 @@ class _Model:
 def _sample_parameters(
     model: _Model, st: _Stats, generator: torch.Generator
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """(log pi (K,), mu (K, d), precision Cholesky-based whitening (K, d, d), m (K, d)) given the labels."""
+    """(log pi (K,), mu (K, d), Sigma (K, d, d), m (K, d)) drawn given the labels."""
     K, d = st.s.shape
     f = dict(dtype=st.s.dtype, device=st.s.device)
-    g = sample_gamma(st.n, generator=generator)
+    g = sample_gamma(st.n, generator)
     log_pi = torch.log(g.clamp_min(1e-300)) - torch.log(g.sum())
-    kn = model.kappa0 + st.n
-    nn = model.nu0 + st.n
-    mean_n = st.s / kn[:, None]
-    P = model.psi0 + st.Q - st.s.unsqueeze(-1) * st.s.unsqueeze(-2) / kn[:, None, None]
-    P = 0.5 * (P + P.transpose(-2, -1))
-    # Sigma ~ IW(P, nn)  <=>  Sigma^-1 = W ~ Wishart(P^-1, nn); Bartlett: W = L A A^T L^T, L L^T = P^-1
-    L = torch.linalg.cholesky(torch.cholesky_inverse(torch.linalg.cholesky(P)))
-    idx = torch.arange(d, device=st.s.device)
-    chi2 = 2.0 * sample_gamma((nn[:, None] - idx.to(nn.dtype)) / 2.0, generator=generator)  # (K, d)
-    A = torch.tril(torch.randn(K, d, d, generator=generator, **f), diagonal=-1)
-    A = A + torch.diag_embed(torch.sqrt(chi2))
-    LA = L @ A  # W = (LA)(LA)^T, so the whitening of Sigma is (LA)^T: z = (LA)^T (y - mu)
-    white = LA.transpose(-2, -1)
-    # mu ~ N(mean_n, Sigma / kn): mu = mean_n + (LA)^-T eps / sqrt(kn)
-    eps = torch.randn(K, d, 1, generator=generator, **f)
-    mu = mean_n + torch.linalg.solve_triangular(white, eps, upper=True).squeeze(-1) / torch.sqrt(kn)[:, None]
+    mu, cov = sample_niw(niw_posterior(model.prior, st.n, st.s, st.Q), generator)
     # mean direction: tangent-space Gaussian approximation of vMF(R/|R|, kappa |R|)
     rn = torch.linalg.vector_norm(st.R, dim=-1, keepdim=True)
     mhat = torch.where(rn > 0, st.R / rn.clamp_min(1e-300), torch.zeros_like(st.R))
@@ -241,18 +174,15 @@ def _sample_parameters(
     xi = xi - (xi * mhat).sum(-1, keepdim=True) * mhat
     m = mhat + xi / torch.sqrt(model.kappa * rn.clamp_min(1e-300))
     m = torch.where(rn > 0, m / torch.linalg.vector_norm(m, dim=-1, keepdim=True).clamp_min(1e-300), m * 0)
-    return log_pi, mu, white, m
+    return log_pi, mu, cov, m
 
 
 def _sample_labels(
     y: Tensor, u: Tensor, params: tuple[Tensor, Tensor, Tensor, Tensor], kappa: float, generator: torch.Generator
 ) -> Tensor:
     """All labels at once by Gumbel-max: (N,) int64."""
-    log_pi, mu, white, m = params
-    diff = y.unsqueeze(1) - mu  # (N, K, d)
-    z = torch.einsum("kij,nkj->nki", white, diff)
-    log_det_white = torch.log(torch.diagonal(white, dim1=-2, dim2=-1)).sum(-1)  # = -0.5 log|Sigma|
-    logits = log_pi + log_det_white - 0.5 * (z * z).sum(-1) + kappa * (u @ m.T)
+    log_pi, mu, cov, m = params
+    logits = log_pi + gaussian_log_density(y, mu, cov) + kappa * (u @ m.T)
     gumbel = -torch.log(-torch.log(torch.rand(logits.shape, dtype=y.dtype, device=y.device, generator=generator)
                                    .clamp_min(1e-300)))
     return torch.argmax(logits + gumbel, dim=-1)
@@ -371,8 +301,12 @@ def damm_labels(
     has_dir = speed.squeeze(-1) > 0
     u = torch.where(speed > 0, vv / speed.clamp_min(1e-300), torch.zeros_like(vv))
     nu0 = d + float(nu0_offset)
-    psi0 = torch.eye(d, dtype=torch.float64, device=x.device) * max(nu0 - d - 1.0, 1e-3) * float(psi_scale) ** 2
-    model = _Model(d, float(alpha), float(kappa), float(kappa0), nu0, psi0)
+    f64 = dict(dtype=torch.float64, device=x.device)
+    prior = NIWPrior(
+        mean=torch.zeros(d, **f64), kappa=torch.tensor(float(kappa0), **f64), dof=torch.tensor(nu0, **f64),
+        scale=torch.eye(d, **f64) * max(nu0 - d - 1.0, 1e-3) * float(psi_scale) ** 2,
+    )  # fmt: skip
+    model = _Model(float(alpha), float(kappa), prior)
     feats = _Stats.features(y, u, has_dir)
     z = torch.zeros(N, dtype=torch.long, device=x.device)
     K = 1

@@ -9,19 +9,20 @@ Notation:
     covariances  (K, d, d)  symmetric positive-definite Sigma_k (data units squared)
 
 Densities are evaluated through the Cholesky factor L_k of Sigma_k (cached at construction):
-``log N(x; mu_k, Sigma_k) = -0.5 ||L_k^-1 (x - mu_k)||^2 - sum_i log L_k[i, i] - 0.5 d log(2 pi)``.
+``log N(x; mu_k, Sigma_k) = -0.5 ||L_k^-1 (x - mu_k)||^2 - sum_i log L_k[i, i] - 0.5 d log(2 pi)``, the
+normaliser from :func:`~lfd_torch.gmm.gaussian.gaussian_log_normalizer`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
 from lfd_torch.errors import InvalidGMMError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.gmm.gaussian import gaussian_log_normalizer
 
 __all__ = ["GMM", "InvalidGMMError", "check_samples"]
 
@@ -122,8 +123,7 @@ class GMM:
             raise InvalidGMMError(f"covariance {k} is not positive definite")
         eye = torch.eye(d, dtype=S.dtype, device=S.device).expand(K, d, d)
         L_inv = torch.linalg.solve_triangular(L, eye, upper=False)
-        log_det_half = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
-        log_norm = torch.log(w) - log_det_half - 0.5 * d * math.log(2.0 * math.pi)
+        log_norm = torch.log(w) + gaussian_log_normalizer(L)
         object.__setattr__(self, "_chol", L)
         object.__setattr__(self, "_chol_inv", L_inv)
         object.__setattr__(self, "_log_norm", log_norm)

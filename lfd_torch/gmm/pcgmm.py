@@ -62,8 +62,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from torch import Tensor
 
-from lfd_torch.gmm._niw import NIWPrior
 from lfd_torch.gmm.model import GMM, InvalidGMMError, _gmm_from_dense_labels, check_samples
+from lfd_torch.gmm.niw import NIWPrior, niw_log_marginal_likelihood, niw_log_marginal_normalizer
 from lfd_torch.gmm.postprocess import merge_small_components
 
 __all__ = [
@@ -114,40 +114,39 @@ def _flat_features(y: np.ndarray) -> np.ndarray:
     return np.concatenate([np.ones((M, 1)), y, outer], axis=1)
 
 
+def _unflatten(F: np.ndarray, d: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Statistics rows F (m, p) of :func:`_flat_features` as tensors: counts (m,), sums (m, d), outer (m, d, d)."""
+    Ft = torch.as_tensor(F, dtype=torch.float64)
+    iu = torch.triu_indices(d, d, device=Ft.device)
+    outer = torch.zeros(F.shape[0], d, d, dtype=torch.float64, device=Ft.device)
+    outer[:, iu[0], iu[1]] = Ft[:, 1 + d :]
+    outer[:, iu[1], iu[0]] = Ft[:, 1 + d :]
+    return Ft[:, 0], Ft[:, 1 : 1 + d], outer
+
+
 class _LogMarginal:
-    """log NIW marginal likelihood of a flat statistics row [n, s, triu(Q)] (prior mean mu0 = 0,
-    Psi0 = c I), in plain Python floats for d <= 3 (the sampler calls it once per candidate table)."""
+    """NIW log marginal likelihood (:func:`~lfd_torch.gmm.niw.niw_log_marginal_likelihood`) of flat statistics
+    rows [n, s, triu(Q)] under a prior with mean 0 and scale Psi0 = c I.
+
+    The sampler scores every live table for every point, and one tensor call costs more than a whole update, so
+    the per-candidate path splits the marginal as c(n) - nu_n / 2 log|Psi_n| (:mod:`lfd_torch.gmm.niw`): c(n) is
+    tabulated once by :func:`~lfd_torch.gmm.niw.niw_log_marginal_normalizer`, and only the determinant of
+    Psi_n = c I + Q - s s^T / kappa_n is written out, in Python floats, for d <= 3. Larger d and batches call the
+    tensor kernel.
+    """
 
     def __init__(self, prior: NIWPrior, n_max: int):
-        d = prior.dim
-        self.d = d
-        self.c = float(prior.psi0[0, 0])
-        self.kappa0 = prior.kappa0
-        self.nu0 = prior.nu0
-        const, _ = prior.tables(n_max)
-        self.const = const.tolist()
-        self.const_arr = const
-        self.iu = np.triu_indices(d)
+        self.prior = prior
+        self.d = prior.dim
+        self.c = float(prior.scale[0, 0])
+        self.kappa0 = float(prior.kappa)
+        self.nu0 = float(prior.dof)
+        counts = torch.arange(n_max + 1, dtype=torch.float64, device=prior.mean.device)
+        self.const = niw_log_marginal_normalizer(prior, counts).tolist()
 
     def batch(self, F: np.ndarray) -> np.ndarray:
-        """Vectorised version of the call for statistics rows F (m, p)."""
-        d, c = self.d, self.c
-        n = F[:, 0]
-        kn = self.kappa0 + n
-        s = F[:, 1 : 1 + d]
-        if d == 2:
-            s0, s1 = s[:, 0], s[:, 1]
-            p00 = c + F[:, 3] - s0 * s0 / kn
-            p01 = F[:, 4] - s0 * s1 / kn
-            p11 = c + F[:, 5] - s1 * s1 / kn
-            logdet = np.log(p00 * p11 - p01 * p01)
-        else:
-            Q = np.zeros((F.shape[0], d, d))
-            Q[:, self.iu[0], self.iu[1]] = F[:, 1 + d :]
-            Q[:, self.iu[1], self.iu[0]] = F[:, 1 + d :]
-            P = c * np.eye(d) + Q - s[:, :, None] * s[:, None, :] / kn[:, None, None]
-            logdet = np.linalg.slogdet(P)[1]
-        return self.const_arr[n.astype(np.int64)] - (self.nu0 + n) / 2 * logdet
+        """Log marginals (m,) of statistics rows F (m, p), through the tensor kernel."""
+        return niw_log_marginal_likelihood(self.prior, *_unflatten(F, self.d)).numpy()
 
     def merged(self, a: list[float], b: list[float]) -> float:
         """Log marginal of the union of two tables with statistics rows ``a`` and ``b``."""
@@ -185,12 +184,7 @@ class _LogMarginal:
             k = c + f[9] - s2 * s2 / kn
             det = a * (g * k - h * h) - b * (b * k - h * e) + e * (b * h - g * e)
         else:
-            Q = np.zeros((d, d))
-            Q[self.iu] = f[1 + d :]
-            Q = Q + Q.T - np.diag(np.diag(Q))
-            s = np.asarray(f[1 : 1 + d])
-            P = c * np.eye(d) + Q - np.outer(s, s) / kn
-            return self.const[int(n)] - (self.nu0 + n) / 2 * float(np.linalg.slogdet(P)[1])
+            return float(self.batch(np.asarray([f]))[0])
         return self.const[int(n)] - (self.nu0 + n) / 2 * math.log(det)
 
 
@@ -396,9 +390,10 @@ def pcgmm_labels(
     scale = scale if scale > 0 else 1.0
     y = ((xs - center) / scale).numpy()
     nu0 = d + float(nu0_offset)
+    f64 = dict(dtype=torch.float64, device=xc.device)
     prior = NIWPrior(
-        mu0=np.zeros(d), kappa0=float(kappa0), nu0=nu0,
-        psi0=np.eye(d) * max(nu0 - d - 1.0, 1e-3) * float(psi_scale) ** 2,
+        mean=torch.zeros(d, **f64), kappa=torch.tensor(float(kappa0), **f64), dof=torch.tensor(nu0, **f64),
+        scale=torch.eye(d, **f64) * max(nu0 - d - 1.0, 1e-3) * float(psi_scale) ** 2,
     )  # fmt: skip
     table, lp_hist, nt_hist = _ddcrp_gibbs(y, W.numpy(), prior, int(n_iter), generator)
     _, z = np.unique(table, return_inverse=True)
