@@ -1,0 +1,91 @@
+"""Modulation factors of the large-scale (eq. 13) and small-scale (eqs 17-18) branches, in log space.
+
+Large scale (x outside its subtask space A_m, i.e. log p(x|A_m) < log p(x|A_m-)):
+
+    lambda_ls = -sgn(c) s,   s = max(min(lambda_limit, p(x|A_m-) / p(x|A_m)), 1) in [1, lambda_limit],
+
+computed as s = exp(clamp(log p(x|A_m-) - log p(x|A_m), 0, log lambda_limit)), so that densities that underflow
+(log p = -inf) are fine: own = -inf, other finite gives s = lambda_limit; both -inf gives s = 1 (no information).
+
+Small scale (x inside A_m and H2(x) > H2_ref):
+
+    lambda_ss = min(1, exp(H2_ref - H2(x))) in [0, 1],
+
+which is 1 when H2(x) <= H2_ref (including H2 = H2_ref = +inf) and underflows to 0 far from the data.
+
+Shapes: every argument is (...) and broadcastable; results have the broadcast shape and the dtype/device of the
+first tensor argument. All factors are dimensionless.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from lfd_torch.errors import InvalidArgumentError
+
+__all__ = ["check_lambda_limit", "large_scale_factor", "large_scale_gain", "small_scale_factor"]
+
+
+def check_lambda_limit(lambda_limit: float) -> float:
+    """Validate lambda_limit (a finite number >= 1) and return it as a float.
+
+    Raises:
+        InvalidArgumentError: naming ``lambda_limit``.
+    """
+    if isinstance(lambda_limit, bool) or not isinstance(lambda_limit, (int, float)):
+        raise InvalidArgumentError(f"lambda_limit must be a number >= 1, got {lambda_limit!r}")
+    value = float(lambda_limit)
+    if not math.isfinite(value) or value < 1.0:
+        raise InvalidArgumentError(f"lambda_limit must be a finite number >= 1, got {lambda_limit!r}")
+    return value
+
+
+def large_scale_gain(log_p_own: Tensor, log_p_other: Tensor, lambda_limit: float) -> Tensor:
+    """s = max(min(lambda_limit, p(x|A_m-)/p(x|A_m)), 1), the magnitude of eq. 13.
+
+    Args:
+        log_p_own: (...) log p(x|A_m).
+        log_p_other: (...) log p(x|A_m-) (largest log density among the other subtask spaces).
+        lambda_limit: maximum acceleration multiplier, >= 1.
+
+    Returns:
+        (...) gains in [1, lambda_limit].
+    """
+    limit = check_lambda_limit(lambda_limit)
+    log_ratio = log_p_other - log_p_own
+    log_ratio = torch.where(torch.isnan(log_ratio), torch.zeros_like(log_ratio), log_ratio)  # -inf - -inf
+    return torch.exp(log_ratio.clamp(min=0.0, max=math.log(limit)))
+
+
+def large_scale_factor(log_p_own: Tensor, log_p_other: Tensor, c: Tensor, lambda_limit: float) -> Tensor:
+    """lambda_ls = -sgn(c) s of eq. 13 (literal: 0 where c = 0).
+
+    Args:
+        log_p_own: (...) log p(x|A_m).
+        log_p_other: (...) log p(x|A_m-).
+        c: (...) radial component e_g^T f (units/s).
+        lambda_limit: maximum acceleration multiplier, >= 1.
+
+    Returns:
+        (...) signed factor; |lambda_ls| in [1, lambda_limit] where c != 0.
+    """
+    return -torch.sign(c) * large_scale_gain(log_p_own, log_p_other, lambda_limit)
+
+
+def small_scale_factor(h2: Tensor, h2_ref: Tensor | float) -> Tensor:
+    """lambda_ss = min(1, exp(H2_ref - H2(x))) of eq. 18.
+
+    Args:
+        h2: (...) entropy H2(x).
+        h2_ref: (...) or scalar threshold H2(x_r).
+
+    Returns:
+        (...) factors in [0, 1]; exactly 1 where h2 <= h2_ref.
+    """
+    ref = torch.as_tensor(h2_ref, dtype=h2.dtype, device=h2.device)
+    inside = h2 <= ref
+    gap = torch.where(inside, torch.zeros_like(h2), ref - h2)  # <= 0, never inf - inf
+    return torch.where(inside, torch.ones_like(gap), torch.exp(gap))

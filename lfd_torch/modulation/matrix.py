@@ -1,0 +1,103 @@
+"""The modulation matrix M = W D W^T of eqs 9-12 in closed form (NOTES sec. 4).
+
+W(x) = [e_g, e_1, ..., e_{d-1}] is orthonormal with first column e_g = (x - g)/||x - g|| (eq. 11), so W^-1 = W^T,
+and D = diag(d1, d, ..., d). Every later column of W only enters through W_{2:} W_{2:}^T = I - e_g e_g^T, hence
+
+    M = d I + (d1 - d) e_g e_g^T,        M f = d f + (d1 - d) c e_g,   c = e_g^T f = [W^T f]_1.
+
+No SVD or Gram-Schmidt completion is needed per step (the paper builds the other columns by Gram-Schmidt; the
+result does not depend on that choice). The explicit W D W^T is kept in the tests as the reference.
+
+At x = g the direction e_g is undefined; :func:`goal_direction` returns e_g = 0 there (so c = 0 and M f = d f).
+The modulation policy (:mod:`lfd_torch.modulation.policy`) returns a zero velocity at x = g.
+
+Notation (shapes): x, f, e_g (..., d); c, d1, d, r (...) broadcastable to the batch shape; M (..., d, d).
+Units: x, g data units; f, M f units/s; e_g, D, M dimensionless.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+__all__ = ["GoalDirection", "goal_direction", "modulate", "modulation_matrix", "radial_component"]
+
+
+class GoalDirection(NamedTuple):
+    """Result of :func:`goal_direction`.
+
+    Attributes:
+        unit: (..., d) e_g = (x - g)/||x - g||, zero where x == g.
+        distance: (...) ||x - g|| (data units).
+    """
+
+    unit: Tensor
+    distance: Tensor
+
+
+def goal_direction(x: Tensor, attractor: Tensor) -> GoalDirection:
+    """First column of W (eq. 11) and the distance to the goal.
+
+    Args:
+        x: (..., d) positions.
+        attractor: (d,) goal g (broadcast against ``x``).
+
+    Returns:
+        :class:`GoalDirection` (unit vector zero at x = g, no NaN).
+    """
+    e = x - attractor
+    r = torch.linalg.vector_norm(e, dim=-1)
+    safe = torch.where(r > 0, r, torch.ones_like(r))
+    unit = torch.where((r > 0).unsqueeze(-1), e / safe.unsqueeze(-1), torch.zeros_like(e))
+    return GoalDirection(unit, r)
+
+
+def radial_component(f: Tensor, unit: Tensor) -> Tensor:
+    """c = e_g^T f = [W^-1 f]_1, the component of ``f`` along e_g (units/s).
+
+    Args:
+        f: (..., d) velocities.
+        unit: (..., d) e_g.
+
+    Returns:
+        (...) tensor.
+    """
+    return (f * unit).sum(-1)
+
+
+def modulate(f: Tensor, unit: Tensor, d1: Tensor | float, d: Tensor | float) -> Tensor:
+    """M f = W diag(d1, d, ..., d) W^T f = d f + (d1 - d) c e_g (closed form of eqs 9-10).
+
+    Args:
+        f: (..., d) velocities (units/s).
+        unit: (..., d) e_g, unit norm (or zero at the goal).
+        d1: (...) eigenvalue along e_g (dimensionless).
+        d: (...) eigenvalue of the d - 1 directions orthogonal to e_g (dimensionless).
+
+    Returns:
+        (..., d) modulated velocities, dtype and device of ``f``.
+    """
+    d1 = torch.as_tensor(d1, dtype=f.dtype, device=f.device)
+    d = torch.as_tensor(d, dtype=f.dtype, device=f.device)
+    c = radial_component(f, unit)
+    return d.unsqueeze(-1) * f + ((d1 - d) * c).unsqueeze(-1) * unit
+
+
+def modulation_matrix(unit: Tensor, d1: Tensor | float, d: Tensor | float) -> Tensor:
+    """The matrix M = d I + (d1 - d) e_g e_g^T (equal to W D W^T for any orthonormal completion of e_g).
+
+    Args:
+        unit: (..., d) e_g.
+        d1: (...) eigenvalue along e_g.
+        d: (...) eigenvalue orthogonal to e_g.
+
+    Returns:
+        (..., d, d) symmetric matrices.
+    """
+    d1 = torch.as_tensor(d1, dtype=unit.dtype, device=unit.device)
+    d = torch.as_tensor(d, dtype=unit.dtype, device=unit.device)
+    n = unit.shape[-1]
+    eye = torch.eye(n, dtype=unit.dtype, device=unit.device)
+    return d[..., None, None] * eye + (d1 - d)[..., None, None] * (unit.unsqueeze(-1) * unit.unsqueeze(-2))
