@@ -1,12 +1,10 @@
 """BP-GM-HMM segmentation of LASA Multi_Models_1..4 and of a 3-D multi-step set (paper Sec. III-A, Fig. 2).
 
-No number of steps is given. Demonstrations that start in different places follow different routes (LASA
-Multi_Models mixes 2-3 routes), so each data set is first split into routes by its start points
-(``group_by_start``) and every route is segmented on its own. For every route the table lists, per step m: the
-attractor g_m (mean end point of step m; the last one is the data set's attractor), the HMM states of its subtask
-space A_m, the mean start/end sample and the mean fraction of the demonstration it covers, the number of steps, the
-sampler time, the step counts each demonstration had before the consensus, the demonstrations that were forced to
-the consensus count (``demo:own_count``) and those that had to be cut evenly.
+No number of steps is given, and all demonstrations of a data set are segmented together: LASA Multi_Models mixes
+2-3 routes, which the model separates by its features (``Segmentation.routes``). The table lists, per step m: its
+route, the HMM state, the attractor g_m (mean end point of step m; the last step of a route ends at the data set's
+attractor), the number of pieces and their mean start/end fraction, the number of steps of the data set and of each
+demonstration, and the sampler time.
 Figures show each demonstration coloured by step over the regions where p(x | A_m) is the largest step density.
 
     python experiments/segment_lasa.py
@@ -37,32 +35,6 @@ from lfd_torch.utils import derive_seed
 log = logging.getLogger(__name__)
 
 
-def route_groups(demos: Demos, fraction: float | None) -> list[list[int]]:
-    """Demonstrations that start together: single-linkage groups of start points closer than ``fraction`` times
-    the largest extent of the data (all in one group when ``fraction`` is None).
-
-    LASA Multi_Models sets mix routes from different starts (e.g. Multi_Models_3: 4 from the left, 3 from the top
-    right) that share no step sequence, so the ordered steps of Table I are found per route.
-    """
-    n = demos.n_demos
-    if fraction is None:
-        return [list(range(n))]
-    x = demos.samples()[0]
-    threshold = float(fraction) * float((x.max(0).values - x.min(0).values).max())
-    close = torch.cdist(demos.start_points, demos.start_points) <= threshold
-    group = list(range(n))
-    changed = True
-    while changed:  # connected components by label propagation
-        changed = False
-        for i in range(n):
-            for j in range(n):
-                if close[i, j] and group[j] < group[i]:
-                    group[i] = group[j]
-                    changed = True
-    labels = sorted(set(group))
-    return [[i for i in range(n) if group[i] == g] for g in labels]
-
-
 def datasets(cfg: DictConfig) -> dict[str, Demos]:
     """The LASA shapes of ``cfg.shapes`` and, unless null, the synthetic 3-D set."""
     out = {name: load_lasa(name) for name in cfg.shapes}
@@ -85,36 +57,29 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     rows: list[dict[str, Any]] = []
     written: list[Path] = []
     segmentations = {}
-    for shape, all_demos in datasets(cfg).items():
-        groups = route_groups(all_demos, cfg.get("group_by_start"))
-        for r, members in enumerate(groups):
-            name = shape if len(groups) == 1 else f"{shape}_route{r + 1}"
-            demos = all_demos[members]
-            g = torch.Generator().manual_seed(derive_seed(cfg.experiment, name, cfg.seed))
-            t0 = time.perf_counter()
-            seg = segmenter(demos, generator=g)
-            seconds = time.perf_counter() - t0
-            segmentations[name] = seg
-            log.info("%s (demos %s): %d steps in %.1f s", name, members, seg.n_steps, seconds)
-            counts = seg.info.get("step_counts_before_consensus", {})
-            for step_row in seg.table():
-                row = {
-                    "experiment": cfg.experiment, "shape": name, "method": method, "fold": 0, "seed": int(cfg.seed),
-                    "trajectory": int(step_row["step"]), "demos": " ".join(map(str, members)), "n_steps": seg.n_steps,
-                    "dim": demos.dim, "seconds": seconds,
-                    "counts_before_consensus": " ".join(f"{k}:{v}" for k, v in sorted(counts.items())),
-                    "forced_to_consensus": " ".join(
-                        f"{members[i]}:{c}" for i, c in sorted(seg.info.get("forced_to_consensus", {}).items())
-                    ),
-                    "equal_cut_fallback": " ".join(str(members[i]) for i in seg.info.get("equal_cut_fallback", [])),
-                }  # fmt: skip
-                row.update(step_row)
-                rows.append(row)
-            if cfg.figures:
-                fig_dir = Path(cfg.paths.figures) if cfg.publish else out_dir
-                path = fig_dir / f"{cfg.experiment}_{name}.png"
-                plot_segmentation(seg, demos, path, title=f"{name}: {seg.n_steps} steps")
-                written.append(path)
+    for name, demos in datasets(cfg).items():
+        g = torch.Generator().manual_seed(derive_seed(cfg.experiment, name, cfg.seed))
+        t0 = time.perf_counter()
+        seg = segmenter(demos, generator=g)
+        seconds = time.perf_counter() - t0
+        segmentations[name] = seg
+        log.info("%s: %d steps, %d routes in %.1f s", name, seg.n_steps, seg.n_routes, seconds)
+        for step_row in seg.table():
+            route = int(step_row["route"])
+            members = [i for i in range(demos.n_demos) if int(seg.route_of[i]) == route]
+            row = {
+                "experiment": cfg.experiment, "shape": name, "method": method, "fold": 0, "seed": int(cfg.seed),
+                "trajectory": int(step_row["step"]), "demos": " ".join(map(str, members)), "n_steps": seg.n_steps,
+                "steps_per_demo": " ".join(str(len(seg.step_sequence(i))) for i in members),
+                "dim": demos.dim, "seconds": seconds,
+            }  # fmt: skip
+            row.update(step_row)
+            rows.append(row)
+        if cfg.figures:
+            fig_dir = Path(cfg.paths.figures) if cfg.publish else out_dir
+            path = fig_dir / f"{cfg.experiment}_{name}.png"
+            plot_segmentation(seg, demos, path, title=f"{name}: {seg.n_steps} steps, {seg.n_routes} routes")
+            written.append(path)
     table = pd.DataFrame(rows)
     written.append(write_table(table, out_dir / "results.parquet", manifest=manifest))
     if cfg.publish:

@@ -1,9 +1,16 @@
-"""BP-GM-HMM sampler and Segmentation: reproducibility, synthetic switch points, API contract, bad input."""
+"""BP-GM-HMM segmentation (direction-field states, minimum duration, routes): accuracy on data with known switches,
+mutants that must fail the same checks, routes, subtask spaces, determinism, API contract and bad input.
+
+Every random draw is seeded through a ``torch.Generator``. The accuracy property used throughout
+(:func:`step_accuracy`) is: every demonstration has exactly the true number of steps, and every true switch is found
+within 3 % of that demonstration's length.
+"""
 
 from __future__ import annotations
 
+import functools
+import inspect
 import math
-import warnings
 from pathlib import Path
 
 import pytest
@@ -11,321 +18,392 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
+import lfd_torch.segmentation.sampler as sampler_module
+import lfd_torch.segmentation.segmentation as segmentation_module
 from lfd_torch.data import Demos
-from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError, StoreError, TooFewSamplesError
 from lfd_torch.segmentation import (
     BetaProcessHMMSampler,
     BPGMHMMSegmenter,
     FixedSegmenter,
     NoSegmenter,
+    SamplerResult,
     Segmentation,
-    SegmentationWarning,
     multi_step_demos,
     runs,
     segment,
 )
-from lfd_torch.segmentation.segmentation import _absorb_short, _best_split, _consensus, _steps_from_bounds
+from lfd_torch.segmentation.segmentation import _steps_from_bounds
 from conftest import requires_cuda
 
 F64 = torch.float64
 CONF = Path(__file__).resolve().parents[1] / "conf"
-FAST = dict(n_iterations=20, n_chains=2)
+FAST = dict(max_samples=40, n_iterations=15, n_chains=2)
+SWITCH_TOLERANCE = 0.03  # fraction of a demonstration's length
 
 
-def boundary_errors(seg: Segmentation, truth: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
-    """|nearest found boundary - true switch| / T_i for every true switch of every sequence."""
-    errs = []
-    for i in range(truth.shape[0]):
-        found = seg.boundaries[i, 1:-1]
-        for t in truth[i].tolist():
-            errs.append(float((found - t).abs().min()) / float(lengths[i]) if found.numel() else 1.0)
-    return torch.tensor(errs)
+# ---------------------------------------------------------------------------------------------- helpers
+def step_accuracy(seg: Segmentation, switch_times: torch.Tensor, lengths: torch.Tensor) -> tuple[bool, list]:
+    """The step property: per demonstration, the true number of steps and every true switch within 3 % of T_i.
+
+    Returns:
+        (holds, report) with one report entry per demonstration: the largest switch error as a fraction of T_i,
+        or ("count", found, true) when the number of steps is wrong.
+    """
+    holds, report = True, []
+    for i in range(switch_times.shape[0]):
+        T = int(lengths[i])
+        found, truth = seg.switches(i), switch_times[i].tolist()
+        if len(found) != len(truth):
+            holds = False
+            report.append(("count", len(found) + 1, len(truth) + 1))
+            continue
+        err = max((abs(a - b) / T for a, b in zip(found, truth)), default=0.0)
+        report.append(round(err, 4))
+        holds = holds and err <= SWITCH_TOLERANCE
+    return holds, report
 
 
-# ---------------------------------------------------------------------------------------------- sampler
-def test_sampler_reproducible_for_fixed_seed():
-    syn = multi_step_demos(torch.Generator().manual_seed(3), n_demos=3, n_steps=3, samples_per_step=30)
-    seqs = syn.demos.sequences()
-    sampler = BetaProcessHMMSampler(n_iterations=6, n_chains=2)
-    a = sampler.run(seqs, torch.Generator().manual_seed(11))
-    b = sampler.run(seqs, torch.Generator().manual_seed(11))
-    c = sampler.run(seqs, torch.Generator().manual_seed(12))
-    assert torch.equal(a.states, b.states) and torch.equal(a.trace, b.trace) and torch.equal(a.mean, b.mean)
-    assert not torch.equal(a.trace, c.trace)
-    assert a.trace.shape == (2, 6) and torch.isfinite(a.trace).all()
-    assert a.features.shape == (3, a.n_features) and a.features.any(1).all()
-    # every label indexes a feature its sequence owns
-    for i in range(3):
-        assert a.features[i, a.states[i, : int(a.lengths[i])]].all()
+# (profile, dim, n_demos, n_steps, seed): the full grid, no case left out
+ACCURACY_CASES = [
+    (profile, dim, n_demos, n_steps, seed)
+    for profile in ("min_jerk", "constant")
+    for dim in (2, 3)
+    for n_demos in (1, 4)
+    for n_steps in (3, 4)
+    for seed in (0, 1)
+]
 
 
-def test_sampler_finds_well_separated_clusters(generator):
-    # piecewise-constant sequences visiting 3 well separated points: the best sample has 3 states and the switch
-    # times exactly (a check on the whole chain, not only the kernels)
-    centers = torch.tensor([[0.0, 0.0], [5.0, 0.0], [0.0, 5.0]], dtype=F64)
-    seqs, truth = [], []
-    for i in range(3):
-        lens = [20 + 3 * i, 25, 18 + i]
-        lab = torch.cat([torch.full((n,), k) for k, n in enumerate(lens)])
-        seqs.append(centers[lab] + 0.2 * torch.randn(len(lab), 2, generator=generator, dtype=F64))
-        truth.append(lab)
-    res = BetaProcessHMMSampler(n_iterations=25, n_chains=2).run(seqs, generator)
-    for i in range(3):
-        s = res.states[i, : len(truth[i])]
-        _, _, values = runs(s)
-        assert values.numel() == 3 and values.unique().numel() == 3
-        starts, _, _ = runs(truth[i])
-        torch.testing.assert_close(runs(s)[0], starts)
-    # the returned sample is the best one after burn-in (half of the 25 sweeps) over both chains
-    assert res.log_prob == pytest.approx(float(res.trace[:, 12:].max()))
+def _case_id(case: tuple) -> str:
+    profile, dim, n_demos, n_steps, seed = case
+    return f"{profile}-{dim}d-{n_demos}demos-{n_steps}legs-seed{seed}"
 
 
-# ---------------------------------------------------------------------------------------------- synthetic steps
-@pytest.mark.parametrize("profile,seed", [("min_jerk", 1), ("constant", 2)])
-def test_synthetic_switch_points_found(profile, seed):
-    syn = multi_step_demos(torch.Generator().manual_seed(seed), n_demos=4, n_steps=4, profile=profile, samples_per_step=70)
-    seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), **FAST)
-    assert seg.n_steps == syn.n_steps
-    err = boundary_errors(seg, syn.switch_times, syn.demos.lengths)
-    assert float(err.median()) <= 0.03
-    # attractors are the corners (up to the jitter of the waypoints, sd 0.03, and the boundary error)
-    torch.testing.assert_close(seg.attractors, syn.waypoints[1:], atol=0.1, rtol=0)
+# Known failures of the landed model (issue 7 stays open): listed so that the suite records them and a fix that
+# makes one pass is noticed (strict xfail). Accuracy: one extra short step at rest (start) or next to a corner.
+# Subtask spaces: at minimum-jerk rests two steps' stretch Gaussians overlap and 83-95 % of a step's samples are in.
+KNOWN_ACCURACY_FAILURES = {
+    "constant-2d-1demos-4legs-seed0",
+    "min_jerk-2d-4demos-3legs-seed0",
+    "min_jerk-2d-4demos-3legs-seed1",
+    "min_jerk-2d-4demos-4legs-seed1",
+    "min_jerk-3d-1demos-4legs-seed0",
+    "min_jerk-3d-4demos-3legs-seed0",
+    "min_jerk-3d-4demos-3legs-seed1",
+}
+KNOWN_MEMBERSHIP_FAILURES = {
+    "constant-2d-1demos-4legs-seed0",
+    "constant-2d-4demos-4legs-seed0",
+    "min_jerk-2d-1demos-3legs-seed0",
+    "min_jerk-2d-1demos-3legs-seed1",
+    "min_jerk-2d-1demos-4legs-seed0",
+    "min_jerk-2d-1demos-4legs-seed1",
+    "min_jerk-2d-4demos-3legs-seed0",
+    "min_jerk-2d-4demos-3legs-seed1",
+    "min_jerk-2d-4demos-4legs-seed0",
+    "min_jerk-2d-4demos-4legs-seed1",
+    "min_jerk-3d-1demos-3legs-seed0",
+    "min_jerk-3d-1demos-3legs-seed1",
+    "min_jerk-3d-1demos-4legs-seed0",
+    "min_jerk-3d-1demos-4legs-seed1",
+    "min_jerk-3d-4demos-3legs-seed0",
+    "min_jerk-3d-4demos-3legs-seed1",
+    "min_jerk-3d-4demos-4legs-seed0",
+    "min_jerk-3d-4demos-4legs-seed1",
+}
 
 
-def test_revisited_region_is_the_same_state():
-    # W0 -> W1 -> W2 -> W3 -> W1 -> W4: the corner W1 is reached at the end of step 1 and of step 4
-    # (every leg turns by >= 76 degrees, so each leg is a step)
-    W = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [1.0, 0.0], [2.0, 0.5]], dtype=F64)
-    syn = multi_step_demos(torch.Generator().manual_seed(0), waypoints=W, n_demos=4, samples_per_step=80)
-    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), **FAST)
-    assert seg.n_steps == 5
+def _cases(known: set[str], reason: str) -> list:
+    return [pytest.param(c, marks=pytest.mark.xfail(strict=True, reason=reason)) if _case_id(c) in known else c
+            for c in ACCURACY_CASES]
+
+
+@functools.lru_cache(maxsize=None)
+def synthetic(profile: str, dim: int, n_demos: int, n_steps: int, seed: int):
+    return multi_step_demos(torch.Generator().manual_seed(seed), n_demos=n_demos, n_steps=n_steps, dim=dim,
+                            profile=profile)  # fmt: skip
+
+
+@functools.lru_cache(maxsize=None)
+def segmented(profile: str, dim: int, n_demos: int, n_steps: int, seed: int) -> Segmentation:
+    """``segment`` with its default hyperparameters (cached: the accuracy and subtask-space tests share it)."""
+    syn = synthetic(profile, dim, n_demos, n_steps, seed)
+    return segment(syn.demos, generator=torch.Generator().manual_seed(seed))
+
+
+# ---------------------------------------------------------------------------------------------- 1. accuracy
+@pytest.mark.parametrize("case", _cases(KNOWN_ACCURACY_FAILURES, "known: an extra short step"), ids=_case_id)
+def test_steps_and_switches_match_the_truth(case):
+    """Property: with the default hyperparameters every demonstration gets the true number of steps and every true
+    switch is found within 3 % of the demonstration's length (:func:`step_accuracy`)."""
+    syn = synthetic(*case)
+    seg = segmented(*case)
+    holds, report = step_accuracy(seg, syn.switch_times, syn.demos.lengths)
+    assert holds, f"per demonstration (max switch error / T, or wrong step count): {report}"
+
+
+@pytest.mark.parametrize("case", ACCURACY_CASES[::5], ids=_case_id)
+def test_steps_are_maximal_runs_of_hmm_states(case):
+    """Property: the result is self-consistent: a step is a maximal run of one HMM state (consecutive pieces have
+    different states, every sample of a piece carries its step's state), pieces tile each demonstration in time
+    order, and labels agree with the pieces."""
+    syn = synthetic(*case)
+    seg = segmented(*case)
+    for i in range(seg.n_sequences):
+        T = int(syn.demos.lengths[i])
+        p = seg.pieces[i]
+        assert int(p[0, 1]) == 0 and int(p[-1, 2]) == T and torch.equal(p[1:, 1], p[:-1, 2])
+        starts, ends, values = runs(seg.states[i])
+        assert torch.equal(starts, p[:, 1]) and torch.equal(ends, p[:, 2])
+        assert torch.equal(seg.step_state[p[:, 0]], values)
+        for step, a, b in p.tolist():
+            assert (seg.labels[i][a:b] == step).all()
+        assert seg.switches(i) == p[1:, 1].tolist() and seg.step_sequence(i) == p[:, 0].tolist()
+        assert set(seg.step_sequence(i)) <= set(seg.routes[int(seg.route_of[i])])
+
+
+# ---------------------------------------------------------------------------------------------- 2. mutants
+MUTATION_CASE = ("constant", 2, 4, 3, 0)
+
+
+def _blind_result(sequences: list[torch.Tensor], labeller) -> SamplerResult:
+    """A SamplerResult whose states come from ``labeller(t, T_i)`` and whose fields are all equal (no data used)."""
+    N, d = len(sequences), sequences[0].shape[1]
+    T = max(s.shape[0] for s in sequences)
+    states = []
+    for s in sequences:
+        lab = labeller(torch.arange(s.shape[0]), s.shape[0])
+        states.append(torch.cat([lab, lab[-1:].expand(T - lab.shape[0])]))
+    states = torch.stack(states).to(torch.long)
+    K = int(states.max()) + 1
+    return SamplerResult(
+        states=states, lengths=torch.tensor([s.shape[0] for s in sequences]), features=torch.ones(N, K, dtype=torch.bool),
+        field=torch.zeros(K, d, d + 1, dtype=F64), noise=0.04 * torch.eye(d, dtype=F64).expand(K, d, d).clone(),
+        centre=torch.zeros(d, dtype=F64), radius=torch.tensor(1.0, dtype=F64), log_prob=0.0,
+        trace=torch.zeros(1, 1, dtype=F64), n_features_trace=torch.zeros(1, 1, dtype=torch.long), chain=0,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("labeller", ["every-2", "every-4", "every-8", "every-16", "equal-true-count"])
+def test_data_blind_labeller_fails_the_step_property(monkeypatch, labeller):
+    """Property checked: :func:`step_accuracy` (true step count, switches within 3 % of T). The real sampler passes
+    it on this data set; a data-blind labeller that replaces the sampler (a new state every n coarse points, or the
+    true number of equal-length steps) must fail it, or the accuracy test could not tell a model from a clock."""
+    syn = synthetic(*MUTATION_CASE)
+    real_ok, real_report = step_accuracy(segmented(*MUTATION_CASE), syn.switch_times, syn.demos.lengths)
+    assert real_ok, real_report  # the property discriminates: the model passes it
+    M = syn.n_steps
+    if labeller == "equal-true-count":
+        def lab(t, T):
+            return (t * M) // T
+    else:
+        n = int(labeller.split("-")[1])
+
+        def lab(t, T):
+            return torch.clamp(t // n, max=(T - 1) // n)
+
+    def fake_run(self, sequences, velocities, generator, *args, **kwargs):
+        return _blind_result(sequences, lab)
+
+    monkeypatch.setattr(BetaProcessHMMSampler, "run", fake_run)
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0))
+    ok, report = step_accuracy(seg, syn.switch_times, syn.demos.lengths)
+    assert not ok, f"a data-blind labeller ({labeller}) passed the step property: {report}"
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sampler_with_data_blind_likelihood_fails_the_step_property(monkeypatch, seed):
+    """Property checked: :func:`step_accuracy`. With an emission log-likelihood that ignores the data (zeros, in the
+    sampler and in the switch refinement) the state sequences are draws from the prior; they must fail the property
+    that the real sampler passes on the same data."""
+    syn = synthetic(*MUTATION_CASE)
+    real_ok, real_report = step_accuracy(segmented(*MUTATION_CASE), syn.switch_times, syn.demos.lengths)
+    assert real_ok, real_report
+    original = sampler_module.field_log_likelihood
+
+    def blind(*args, maha_out: bool = False, **kwargs):
+        ll, q = original(*args, maha_out=True, **kwargs)
+        return (torch.zeros_like(ll), torch.zeros_like(q)) if maha_out else torch.zeros_like(ll)
+
+    monkeypatch.setattr(sampler_module, "field_log_likelihood", blind)
+    monkeypatch.setattr(segmentation_module, "field_log_likelihood", blind)
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed))
+    ok, report = step_accuracy(seg, syn.switch_times, syn.demos.lengths)
+    assert not ok, f"a sampler blind to the data passed the step property: {report}"
+
+
+# ---------------------------------------------------------------------------------------------- 3. routes
+def _two_path_demos():
+    goal = [2.0, 1.0]
+    WA = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], goal], dtype=F64)  # east, north, east
+    WB = torch.tensor([[0.0, 3.0], [0.0, 2.0], [1.5, 2.0], goal], dtype=F64)  # south, east, south-east
+    a = multi_step_demos(torch.Generator().manual_seed(0), n_demos=2, waypoints=WA, profile="constant")
+    b = multi_step_demos(torch.Generator().manual_seed(100), n_demos=2, waypoints=WB, profile="constant")
+    demos = Demos.from_sequences(a.demos.sequences() + b.demos.sequences(), dt=0.01, attractor=torch.tensor(goal, dtype=F64))
+    return demos, (a, b), (WA, WB)
+
+
+def test_demonstrations_on_different_paths_form_two_routes():
+    """Property: two demonstrations along polyline A and two along a clearly different polyline B (no direction
+    field in common) are grouped into exactly two routes {0, 1} and {2, 3}; each demonstration gets its path's
+    steps and switches (within 3 %); every intermediate attractor lies within 2 % of the data span of the true
+    corner and of every one of its pieces' end points; the last step of each route ends at the task attractor."""
+    demos, (a, b), (WA, WB) = _two_path_demos()
+    seg = segment(demos, generator=torch.Generator().manual_seed(0))
+    assert seg.n_routes == 2, seg.routes
+    assert seg.route_of.tolist() == [0, 0, 1, 1]
+    assert set(seg.routes[0]).isdisjoint(seg.routes[1])
+    truth = torch.cat([a.switch_times, b.switch_times])
+    ok, report = step_accuracy(seg, truth, demos.lengths)
+    assert ok, report
+    x = torch.cat(demos.sequences())
+    span = float((x.amax(0) - x.amin(0)).norm())
+    for r, W in zip(seg.routes, (WA, WB)):
+        assert len(r) == W.shape[0] - 1
+        for m, corner in zip(r[:-1], W[1:-1]):
+            assert float((seg.attractors[m] - corner).norm()) <= 0.02 * span, (m, seg.attractors[m], corner)
+            for i in range(seg.n_sequences):
+                for step, _, end in seg.pieces[i].tolist():
+                    if step == m:
+                        assert float((demos.positions[i, end - 1] - seg.attractors[m]).norm()) <= 0.02 * span
+        torch.testing.assert_close(seg.attractors[r[-1]], demos.attractor)
     for i in range(4):
-        first, second = syn.switch_times[i, 0] - 1, syn.switch_times[i, 3] - 1
-        assert int(seg.states[i][first]) == int(seg.states[i][second])
-    shared = set(seg.step_states()[0]) & set(seg.step_states()[3])
-    assert shared, "the state of region W1 belongs to both steps that end there"
+        assert seg.step_sequence(i) == list(seg.routes[int(seg.route_of[i])])
 
 
-def test_long_straight_leg_is_one_step(generator):
-    # one straight constant-speed leg: the HMM uses several Gaussians along it, the segment level merges them
-    W = torch.tensor([[0.0, 0.0], [3.0, 0.0]], dtype=F64)
-    syn = multi_step_demos(generator, waypoints=W, n_demos=3, profile="constant", samples_per_step=150)
-    seg = segment(syn.demos, generator=generator, **FAST)
-    assert seg.sampler is not None and seg.sampler.n_features >= 2
-    assert seg.n_steps == 1
+@pytest.mark.xfail(strict=True, reason="a demonstration that skips a step gets a route of its own for some seeds")
+def test_demonstration_that_skips_a_step_joins_the_route():
+    """Property: three demonstrations along legs A (east), B (a short jog north) and C (east-north-east) and one that
+    goes from A's end straight to the goal (skipping B; its last leg within 10 degrees of C) form one route; the
+    skipping demonstration visits the route's first and last steps only. Checked for 4 seeds."""
+    W = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 0.4], [2.0, 0.6]], dtype=F64)
+    failures = []
+    for seed in range(4):
+        full = multi_step_demos(torch.Generator().manual_seed(seed), n_demos=3, waypoints=W, profile="constant")
+        skip = multi_step_demos(torch.Generator().manual_seed(seed + 100), n_demos=1, waypoints=W[[0, 1, 3]],
+                                profile="constant")  # fmt: skip
+        demos = Demos.from_sequences(full.demos.sequences() + skip.demos.sequences(), dt=0.01, attractor=W[-1])
+        seg = segment(demos, generator=torch.Generator().manual_seed(seed))
+        route = list(seg.routes[0]) if seg.n_routes == 1 else None
+        if route is None or len(route) != 3 or seg.step_sequence(3) != [route[0], route[2]]:
+            failures.append((seed, seg.routes, [seg.step_sequence(i) for i in range(4)]))
+    assert not failures, failures
 
 
-# ---------------------------------------------------------------------------------------------- result API
-def test_table_one_attractors_are_mean_end_points():
-    # Paper Table I: two sequences of 8 samples whose steps end at samples 3/6/8 and 2/5/8 (1-based)
-    g = torch.Generator().manual_seed(0)
-    x = [torch.randn(8, 2, generator=g, dtype=F64) for _ in range(2)]
-    demos = Demos.from_sequences(x)
-    seg = _steps_from_bounds(demos, [[0, 3, 6, 8], [0, 2, 5, 8]], {})
-    ends = [(2, 1), (5, 4), (7, 7)]  # 0-based last samples (sequence 1, sequence 2)
-    for m, (e1, e2) in enumerate(ends):
-        torch.testing.assert_close(seg.attractors[m], 0.5 * (x[0][e1] + x[1][e2]))
-    assert [lab.tolist() for lab in seg.labels] == [[0, 0, 0, 1, 1, 1, 2, 2], [0, 0, 1, 1, 1, 2, 2, 2]]
-    fixed = FixedSegmenter([0.3, 0.7])(demos)  # 8 * 0.3 -> 2, 8 * 0.7 -> 6
-    assert fixed.boundaries.tolist() == [[0, 2, 6, 8], [0, 2, 6, 8]]
+# ---------------------------------------------------------------------------------------------- 4. subtask spaces
+@pytest.mark.parametrize("case", _cases(KNOWN_MEMBERSHIP_FAILURES, "known: overlap at rests"), ids=_case_id)
+def test_subtask_spaces_contain_their_steps_samples(case):
+    """Property (paper Sec. IV): >= 98 % of every step's own samples x satisfy ``membership``, i.e.
+    p(x | A_m) >= p(x | A_m-) for their step m."""
+    syn = synthetic(*case)
+    seg = segmented(*case)
+    fractions = []
+    for m in range(seg.n_steps):
+        pts = torch.cat([syn.demos.positions[i, : int(syn.demos.lengths[i])][seg.labels[i] == m]
+                         for i in range(seg.n_sequences)])  # fmt: skip
+        fractions.append(round(float(seg.membership(pts)[:, m].double().mean()), 3))
+    assert min(fractions) >= 0.98, f"fraction of each step's samples inside its subtask space: {fractions}"
 
 
-def test_split_pieces_and_attractors(generator):
-    syn = multi_step_demos(generator, n_demos=3, n_steps=3, samples_per_step=40)
-    seg = FixedSegmenter([0.25, 0.6])(syn.demos)
-    parts = seg.split(syn.demos)
-    assert len(parts) == 3
-    for m, p in enumerate(parts):
-        torch.testing.assert_close(p.attractor, seg.attractors[m])
-        torch.testing.assert_close(p.lengths, seg.boundaries[:, m + 1] - seg.boundaries[:, m])
-    for i, seq in enumerate(syn.demos.sequences()):
-        torch.testing.assert_close(torch.cat([p.sequences()[i] for p in parts]), seq)
-        torch.testing.assert_close(torch.cat([p.velocities[i, : int(p.lengths[i])] for p in parts]),
-                                   syn.demos.velocities[i, : int(syn.demos.lengths[i])])  # fmt: skip
-    with pytest.raises(ShapeMismatchError):
-        seg.split(syn.demos[[0, 1]])
+@pytest.mark.parametrize("case", ACCURACY_CASES[::3], ids=_case_id)
+def test_subtask_density_falls_off_away_from_the_data(case):
+    """Property: log p(x | A_m) is finite, and for every step it is lower at points 10 data spans from the data's
+    centre than at every one of the step's own samples."""
+    syn = synthetic(*case)
+    seg = segmented(*case)
+    x = torch.cat(syn.demos.sequences())
+    span = float((x.amax(0) - x.amin(0)).norm())
+    dirs = torch.nn.functional.normalize(torch.randn(32, seg.dim, generator=torch.Generator().manual_seed(0), dtype=F64), dim=-1)
+    far = seg.log_density(x.mean(0) + 10.0 * span * dirs)  # (32, M)
+    assert torch.isfinite(seg.log_density(x)).all() and torch.isfinite(far).all()
+    for m in range(seg.n_steps):
+        own = torch.cat([syn.demos.positions[i, : int(syn.demos.lengths[i])][seg.labels[i] == m]
+                         for i in range(seg.n_sequences)])  # fmt: skip
+        assert float(far[:, m].max()) < float(seg.log_density(own)[:, m].min())
 
 
-def test_log_density_batched_and_other_steps(generator):
-    syn = multi_step_demos(generator, n_demos=2, n_steps=4, samples_per_step=30)
-    seg = FixedSegmenter([0.25, 0.5, 0.75])(syn.demos)
-    x = torch.randn(5, 7, 2, generator=generator, dtype=F64)
-    ld = seg.log_density(x)
-    assert ld.shape == (5, 7, 4)
-    # per-point loop reference: mixture over the step's Gaussians
+def test_log_density_is_the_stretch_mixture_and_other_steps():
+    """Property: ``log_density`` equals a per-point reference (scipy) of the equal-weight mixture of each step's
+    Gaussians for batched input; ``other_log_density`` is the max over the other steps; ``membership`` compares them;
+    a wrong dimension raises ShapeMismatchError."""
     from scipy.stats import multivariate_normal
 
+    g = torch.Generator().manual_seed(5)
+    syn = multi_step_demos(g, n_demos=2, n_steps=4, samples_per_step=30)
+    seg = FixedSegmenter([0.25, 0.5, 0.75])(syn.demos)
+    x = torch.randn(5, 7, 2, generator=g, dtype=F64)
+    ld = seg.log_density(x)
+    assert ld.shape == (5, 7, 4)
     for m in range(4):
         terms = []
-        for s in range(seg.state_mean.shape[0]):
-            w = float(seg.step_weights[m, s])
+        for j in range(seg.space_mean.shape[0]):
+            w = float(seg.space_weights[m, j])
             if w > 0:
-                dist = multivariate_normal(seg.state_mean[s].numpy(), seg.state_covariance[s].numpy())
+                dist = multivariate_normal(seg.space_mean[j].numpy(), seg.space_covariance[j].numpy())
                 terms.append(math.log(w) + torch.tensor(dist.logpdf(x.numpy())))
         torch.testing.assert_close(ld[..., m], torch.logsumexp(torch.stack(terms), 0))
+    torch.testing.assert_close(seg.space_weights.sum(-1), torch.ones(4, dtype=F64))
     other = seg.other_log_density(x)
     for m in range(4):
-        rest = [j for j in range(4) if j != m]
-        torch.testing.assert_close(other[..., m], ld[..., rest].amax(-1))
+        torch.testing.assert_close(other[..., m], ld[..., [j for j in range(4) if j != m]].amax(-1))
     assert torch.equal(seg.membership(x), ld >= other)
     with pytest.raises(ShapeMismatchError):
         seg.log_density(torch.zeros(3, 3, dtype=F64))
 
 
-def test_no_segmenter_single_step(generator):
-    syn = multi_step_demos(generator, n_demos=2, n_steps=2, samples_per_step=20)
-    seg = NoSegmenter()(syn.demos)
-    assert seg.n_steps == 1
-    torch.testing.assert_close(seg.attractors[0], syn.demos.attractor)  # the single step ends at the task goal
-    assert torch.isinf(seg.other_log_density(torch.zeros(4, 2, dtype=F64))).all()
-    assert len(seg.split(syn.demos)) == 1
+# ---------------------------------------------------------------------------------------------- 5. determinism
+def test_same_seed_same_result_and_seeds_agree_on_an_easy_case():
+    """Property: a fixed generator seed gives identical labels, states, pieces and attractors; on an easy case
+    (constant speed, 2-D, 4 demonstrations, 3 legs) three different seeds give the same (true) number of steps."""
+    syn = synthetic(*MUTATION_CASE)
+    a = segment(syn.demos, generator=torch.Generator().manual_seed(7), **FAST)
+    b = segment(syn.demos, generator=torch.Generator().manual_seed(7), **FAST)
+    for la, lb, sa, sb, pa, pb in zip(a.labels, b.labels, a.states, b.states, a.pieces, b.pieces):
+        assert torch.equal(la, lb) and torch.equal(sa, sb) and torch.equal(pa, pb)
+    assert torch.equal(a.attractors, b.attractors) and torch.equal(a.sampler.trace, b.sampler.trace)
+    counts = []
+    for seed in (7, 8, 9):
+        seg = a if seed == 7 else segment(syn.demos, generator=torch.Generator().manual_seed(seed), **FAST)
+        counts.append([len(seg.step_sequence(i)) for i in range(seg.n_sequences)])
+    assert counts == [[syn.n_steps] * syn.demos.n_demos] * 3, counts
 
 
-# ---------------------------------------------------------------------------------------------- helpers
-def test_absorb_short_runs_picks_better_neighbour():
-    states = torch.tensor([0, 0, 0, 0, 1, 2, 2, 2, 2])
-    le = torch.zeros(9, 3, dtype=F64)
-    le[4, 2] = 1.0  # sample 4 is better explained by state 2
-    out = _absorb_short(states, 2, le)
-    assert out.tolist() == [0, 0, 0, 0, 2, 2, 2, 2, 2]
+# ---------------------------------------------------------------------------------------------- API contract
+def test_table_one_attractors_are_mean_end_points():
+    """Property (paper Table I): the attractor of a step is the mean of its pieces' last samples (the last step's is
+    the task attractor); FixedSegmenter rounds fractional boundaries to samples."""
+    g = torch.Generator().manual_seed(0)
+    x = [torch.randn(8, 2, generator=g, dtype=F64) for _ in range(2)]
+    demos = Demos.from_sequences(x)
+    seg = _steps_from_bounds(demos, [[0, 3, 6, 8], [0, 2, 5, 8]], {})
+    for m, (e1, e2) in enumerate([(2, 1), (5, 4)]):  # 0-based last samples (sequence 1, sequence 2)
+        torch.testing.assert_close(seg.attractors[m], 0.5 * (x[0][e1] + x[1][e2]))
+    torch.testing.assert_close(seg.attractors[2], demos.attractor)
+    assert [lab.tolist() for lab in seg.labels] == [[0, 0, 0, 1, 1, 1, 2, 2], [0, 0, 1, 1, 1, 2, 2, 2]]
+    fixed = FixedSegmenter([0.3, 0.7])(demos)  # 8 * 0.3 -> 2, 8 * 0.7 -> 6
+    assert [p.tolist() for p in fixed.pieces] == [[[0, 0, 2], [1, 2, 6], [2, 6, 8]]] * 2
+    assert fixed.routes == ((0, 1, 2),) and fixed.route_of.tolist() == [0, 0] and fixed.step_state.tolist() == [-1] * 3
+    assert len(fixed.table()) == 3 and fixed.table()[1]["n_pieces"] == 2
 
 
-def test_best_split_finds_corner(generator):
-    t = torch.linspace(0, 1, 50, dtype=F64)
-    leg1 = torch.stack([t, 0 * t], -1)
-    leg2 = torch.stack([1 + 0 * t[1:], t[1:]], -1)
-    x = torch.cat([leg1, leg2]) + 1e-4 * torch.randn(99, 2, generator=generator, dtype=F64)
-    tau, _ = _best_split(x, 3)
-    assert abs(tau - 50) <= 1
-
-
-# ---------------------------------------------------------------------------------------------- bad input
-def test_bad_input_typed_errors(generator):
-    good = torch.randn(60, 2, generator=generator, dtype=F64)
-    with pytest.raises(TooFewSamplesError):
-        segment([good, good[:7]], generator=generator, min_length=5)
-    bad = good.clone()
-    bad[10, 0] = float("nan")
-    with pytest.raises(NonFiniteError):
-        segment([good, bad], generator=generator)
-    with pytest.raises(ShapeMismatchError):
-        segment([good, torch.randn(60, 3, generator=generator, dtype=F64)], generator=generator)
-    with pytest.raises(TypeError):
-        BPGMHMMSegmenter(not_a_parameter=1)
-    with pytest.raises(ValueError):
-        FixedSegmenter([0.5, 0.2])
-
-
-def test_single_sequence_is_segmented(generator):
-    syn = multi_step_demos(generator, n_demos=1, n_steps=3, samples_per_step=60, profile="constant")
-    seg = segment(syn.demos, generator=generator, **FAST)
-    assert seg.n_sequences == 1 and seg.n_steps == 3
-    assert float(boundary_errors(seg, syn.switch_times, syn.demos.lengths).max()) <= 0.03
-
-
-# ---------------------------------------------------------------------------------------------- configs
-@pytest.mark.parametrize("option", ["bp_gm_hmm", "fixed", "none"])
-def test_segmentation_configs_instantiate_and_run(option, generator):
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose(config_name=f"segmentation/{option}")
-    node = cfg.segmentation
-    if option == "bp_gm_hmm":
-        node.n_iterations = 4
-        node.n_chains = 1
-    segmenter = instantiate(node)
-    syn = multi_step_demos(generator, n_demos=2, n_steps=3, samples_per_step=40)
-    seg = segmenter(syn.demos, generator=generator)
-    assert isinstance(seg, Segmentation)
-    assert seg.boundaries.shape[0] == 2 and (seg.boundaries[:, -1] == syn.demos.lengths).all()
-    assert math.isfinite(float(seg.attractors.sum()))
-
-
-def test_segment_lasa_experiment_runs(tmp_path):
-    import sys
-
-    sys.path.insert(0, str(CONF.parent / "experiments"))
-    import segment_lasa
-
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose(
-            config_name="segment_lasa",
-            overrides=[
-                "shapes=[Multi_Models_3]", "synthetic_3d.n_steps=3", "synthetic_3d.samples_per_step=40",
-                "synthetic_3d.n_demos=2", "segmentation.n_iterations=3", "segmentation.n_chains=1",
-                f"paths.root={tmp_path}", f"+out_dir={tmp_path}",
-            ],
-        )  # fmt: skip
-    out = segment_lasa.run(cfg)
-    table = out["table"]
-    # Multi_Models_3 has two routes (4 demos from the left, 3 from the top right) plus the 3-D set
-    assert set(table["shape"]) == {"Multi_Models_3_route1", "Multi_Models_3_route2", "synthetic_3d"}
-    assert (table.groupby("shape")["trajectory"].max() == table.groupby("shape")["n_steps"].first()).all()
-    assert all(Path(p).exists() for p in out["written"])
-    assert (tmp_path / "results" / "tables" / "segment_lasa.parquet").exists()
-
-
-def test_hyperparameter_resampling_and_progress(generator):
-    syn = multi_step_demos(generator, n_demos=3, n_steps=3, samples_per_step=30)
-    res = BetaProcessHMMSampler(n_iterations=8, n_chains=2, resample_hyperparameters=True, progress=True).run(
-        syn.demos.sequences(), generator
-    )
-    h = res.hyperparameters
-    assert all(v > 0 and math.isfinite(v) for v in h.values())
-    assert h["feature_mass"] != 2.0  # drawn from its conditional, not left at the default
-    assert torch.isfinite(res.trace).all()
-
-
-def test_save_load_round_trip(tmp_path, generator):
-    syn = multi_step_demos(generator, n_demos=2, n_steps=3, samples_per_step=40)
-    seg = segment(syn.demos, generator=generator, n_iterations=4, n_chains=1)
-    path = seg.save(tmp_path / "seg.pt")
-    back = Segmentation.load(path)
-    assert torch.equal(back.boundaries, seg.boundaries) and torch.equal(back.attractors, seg.attractors)
-    x = torch.randn(10, 2, generator=generator, dtype=F64)
-    torch.testing.assert_close(back.log_density(x), seg.log_density(x))
-    assert [p.n_demos for p in back.split(syn.demos)] == [2] * seg.n_steps
-
-
-@pytest.mark.cuda
-@requires_cuda
-def test_segment_on_cuda():
-    syn = multi_step_demos(torch.Generator().manual_seed(0), n_demos=3, n_steps=3, samples_per_step=50, profile="constant")
-    demos = syn.demos.to(device="cuda")
-    seg = segment(demos, generator=torch.Generator(device="cuda").manual_seed(0), **FAST)
-    assert seg.n_steps == 3 and seg.attractors.device.type == "cuda"
-    assert seg.log_density(demos.positions).shape == (*demos.positions.shape[:2], 3)
-    assert seg.boundaries.device.type == "cuda" and seg.labels[0].device.type == "cuda"
-    parts = seg.split(demos, end_at_attractor=True)
-    assert parts[-1].positions.device.type == "cuda"
-    torch.testing.assert_close(parts[-1].attractor, demos.attractor)
-
-
-# ---------------------------------------------------------------------------------------------- review fixes
-def test_one_dimensional_data_raise_a_typed_error(generator):
-    # the segment-level line model needs d >= 2 (every 1-D path is a line): a typed error, not ZeroDivisionError
-    t = torch.linspace(0, 1, 60, dtype=F64)
-    seqs = [torch.cat([t, 1 + 0 * t, 1 - t]).unsqueeze(-1) + 0.01 * torch.randn(180, 1, generator=generator, dtype=F64)]
-    with pytest.raises(InvalidArgumentError, match="d >= 2"):
-        segment(seqs, generator=generator, n_iterations=2, n_chains=1)
-    # the segmenters without line stages accept 1-D data
-    seg = FixedSegmenter([1 / 3, 2 / 3])(seqs)
-    assert seg.n_steps == 3 and seg.dim == 1
-    assert NoSegmenter()(seqs).n_steps == 1
-
-
-def test_last_attractor_is_the_task_goal_and_pieces_can_end_at_rest(generator):
-    syn = multi_step_demos(generator, n_demos=3, n_steps=3, samples_per_step=50, profile="constant")
-    goal = syn.waypoints[-1]
-    ends = torch.stack([s[-1] for s in syn.demos.sequences()])
-    assert float((ends.mean(0) - goal).norm()) > 1e-4  # noisy end points: their mean is not the goal
-    seg = segment(syn.demos, generator=generator, **FAST)
-    torch.testing.assert_close(seg.attractors[-1], goal)
-    # from a list of tensors (no attractor given) the goal is the mean end point, as Demos defines it
-    seg_list = segment(syn.demos.sequences(), generator=torch.Generator().manual_seed(0), **FAST)
-    torch.testing.assert_close(seg_list.attractors[-1], ends.mean(0))
-    plain = seg.split(syn.demos)
+def test_split_pieces_and_attractors():
+    """Property: ``split`` returns one Demos per step whose pieces concatenate back to every demonstration
+    (positions and velocities), with the step's attractor; ``end_at_attractor`` appends one resting sample at g_m
+    one sampling interval later; mismatched demonstrations raise ShapeMismatchError."""
+    syn = multi_step_demos(torch.Generator().manual_seed(1), n_demos=3, n_steps=3, samples_per_step=40)
+    seg = FixedSegmenter([0.25, 0.6])(syn.demos)
+    parts = seg.split(syn.demos)
+    assert len(parts) == 3
+    for m, p in enumerate(parts):
+        torch.testing.assert_close(p.attractor, seg.attractors[m])
+        torch.testing.assert_close(p.lengths, torch.stack([pc[m, 2] - pc[m, 1] for pc in seg.pieces]))
+    for i, seq in enumerate(syn.demos.sequences()):
+        torch.testing.assert_close(torch.cat([p.sequences()[i] for p in parts]), seq)
+        torch.testing.assert_close(torch.cat([p.velocities[i, : int(p.lengths[i])] for p in parts]),
+                                   syn.demos.velocities[i, : int(syn.demos.lengths[i])])  # fmt: skip
     rest = seg.split(syn.demos, end_at_attractor=True)
-    for m, (p, r) in enumerate(zip(plain, rest)):
+    for m, (p, r) in enumerate(zip(parts, rest)):
         torch.testing.assert_close(r.lengths, p.lengths + 1)
         for i in range(p.n_demos):
             L = int(p.lengths[i])
@@ -333,85 +411,150 @@ def test_last_attractor_is_the_task_goal_and_pieces_can_end_at_rest(generator):
             torch.testing.assert_close(r.positions[i, L], seg.attractors[m])
             assert float(r.velocities[i, L].abs().max()) == 0.0
             torch.testing.assert_close(r.times[i, L] - r.times[i, L - 1], p.times[i, L - 1] - p.times[i, L - 2])
-        torch.testing.assert_close(r.attractor, seg.attractors[m])
+    with pytest.raises(ShapeMismatchError):
+        seg.split(syn.demos[[0, 1]])
 
 
-def test_consensus_count_is_reported_and_warned():
-    # three sequences with 3 straight legs, one that goes straight to the goal (2 legs, skipping a corner)
+def test_no_segmenter_single_step():
+    """Property: NoSegmenter gives one step ending at the task attractor, no other region (-inf), one piece each."""
+    syn = multi_step_demos(torch.Generator().manual_seed(2), n_demos=2, n_steps=2, samples_per_step=20)
+    seg = NoSegmenter()(syn.demos)
+    assert seg.n_steps == 1 and seg.routes == ((0,),)
+    torch.testing.assert_close(seg.attractors[0], syn.demos.attractor)
+    assert torch.isinf(seg.other_log_density(torch.zeros(4, 2, dtype=F64))).all()
+    assert len(seg.split(syn.demos)) == 1 and all(seg.switches(i) == [] for i in range(2))
+
+
+def test_runs_helper():
+    """Property: ``runs`` returns the maximal runs (start, exclusive end, value) of a label sequence."""
+    starts, ends, values = runs(torch.tensor([3, 3, 1, 1, 1, 3, 2]))
+    assert starts.tolist() == [0, 2, 5, 6] and ends.tolist() == [2, 5, 6, 7] and values.tolist() == [3, 1, 3, 2]
+    starts, ends, values = runs(torch.tensor([4]))
+    assert starts.tolist() == [0] and ends.tolist() == [1] and values.tolist() == [4]
+
+
+def test_save_load_round_trip_and_bad_files(tmp_path):
+    """Property: save/load (schema 2) restores every field exactly (log densities and splits agree); a missing,
+    foreign or wrong-schema file raises StoreError."""
+    syn = multi_step_demos(torch.Generator().manual_seed(3), n_demos=2, n_steps=3, samples_per_step=40)
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(3), **FAST)
+    back = Segmentation.load(seg.save(tmp_path / "seg.pt"))
+    for name in ("labels", "pieces", "states"):
+        assert all(torch.equal(u, v) for u, v in zip(getattr(back, name), getattr(seg, name)))
+    for name in ("attractors", "route_of", "space_mean", "space_covariance", "space_weights", "step_state"):
+        assert torch.equal(getattr(back, name), getattr(seg, name)), name
+    assert back.routes == seg.routes
+    x = torch.randn(10, 2, generator=torch.Generator().manual_seed(0), dtype=F64)
+    torch.testing.assert_close(back.log_density(x), seg.log_density(x))
+    assert [p.n_demos for p in back.split(syn.demos)] == [p.n_demos for p in seg.split(syn.demos)]
+    with pytest.raises(StoreError):
+        Segmentation.load(tmp_path / "missing.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a torch file")
+    with pytest.raises(StoreError):
+        Segmentation.load(tmp_path / "junk.pt")
+    old = seg.state_dict() | {"schema_version": 1}
+    torch.save(old, tmp_path / "old.pt")
+    with pytest.raises(StoreError):
+        Segmentation.load(tmp_path / "old.pt")
+    incomplete = {k: v for k, v in seg.state_dict().items() if k != "pieces"}
+    with pytest.raises(StoreError):
+        Segmentation.from_state_dict(incomplete)
+
+
+# ---------------------------------------------------------------------------------------------- bad input
+def test_bad_input_typed_errors():
+    """Property: invalid input raises the library's typed errors before any sampling."""
     g = torch.Generator().manual_seed(0)
-    W = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=F64)
-    tau = torch.linspace(0, 1, 41, dtype=F64)[1:].unsqueeze(-1)
-
-    def path(corners: torch.Tensor) -> torch.Tensor:
-        legs = [corners[:1]] + [corners[m] + tau * (corners[m + 1] - corners[m]) for m in range(len(corners) - 1)]
-        x = torch.cat(legs)
-        return x + 0.003 * torch.randn(x.shape, generator=g, dtype=F64)
-
-    seqs = [path(W) for _ in range(3)] + [path(W[[0, 1, 3]])]
-    bounds = [[0, 41, 81, 121]] * 3 + [[0, 41, 81]]
-    with pytest.warns(SegmentationWarning, match=r"sequences \[3\] had \[2\] steps"):
-        out, forced, equal_cut = _consensus(seqs, bounds, floor_var=1e-4, min_length=5)
-    assert [len(b) - 1 for b in out] == [3, 3, 3, 3] and forced == {3: 2} and equal_cut == []
-    # a sequence too short to split into the consensus count is cut evenly, and that is reported too
-    short = path(W[[0, 3]])[:25]  # 25 samples, min_length 10: at most 2 steps
-    with pytest.warns(SegmentationWarning, match="cut evenly"):
-        out, forced, equal_cut = _consensus(seqs[:3] + [short], bounds[:3] + [[0, 25]], floor_var=1e-4, min_length=10)
-    assert forced == {3: 1} and equal_cut == [3] and len(out[3]) == 4
-    # no warning when every sequence agrees, and segment() records the decisions in info
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", SegmentationWarning)
-        _, forced, equal_cut = _consensus(seqs[:3], bounds[:3], floor_var=1e-4, min_length=5)
-    assert forced == {} and equal_cut == []
-    syn = multi_step_demos(torch.Generator().manual_seed(2), n_demos=2, n_steps=2, samples_per_step=40)
-    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), **FAST)
-    assert isinstance(seg.info["forced_to_consensus"], dict) and isinstance(seg.info["equal_cut_fallback"], list)
+    good = torch.randn(60, 2, generator=g, dtype=F64)
+    with pytest.raises(TooFewSamplesError):
+        segment([good, good[:7]], generator=g, min_length=5)  # 7 < 2 * 5
+    bad = good.clone()
+    bad[10, 0] = float("nan")
+    with pytest.raises(NonFiniteError):
+        segment([good, bad], generator=g)
+    with pytest.raises(ShapeMismatchError):
+        segment([good, torch.randn(60, 3, generator=g, dtype=F64)], generator=g)
+    with pytest.raises(InvalidArgumentError):
+        segment([good], generator=g, min_length=0)
+    with pytest.raises(InvalidArgumentError):
+        segment([good], generator=g, max_samples=4)
+    with pytest.raises(ValueError):
+        segment([good], generator=g, stickiness=-1.0)
+    with pytest.raises(TypeError):
+        BPGMHMMSegmenter(not_a_parameter=1)
+    with pytest.raises(ValueError):
+        FixedSegmenter([0.5, 0.2])
 
 
-def test_max_samples_is_documented_as_a_resolution_parameter():
-    # the BIC merge runs on the subsampled sequences, so max_samples changes step counts: users must be told
-    text = (CONF / "segmentation" / "bp_gm_hmm.yaml").read_text()
-    line = next(ln for ln in text.splitlines() if ln.startswith("max_samples:"))
-    assert "resolution" in line and "step count" in line.lower()
-    assert "resolution" in segment.__doc__.split("max_samples:")[1].split("straightness_tolerance:")[0]
+def test_one_dimensional_data_raise_a_typed_error():
+    """Property: 1-D data (a direction field has only two directions) raise InvalidArgumentError naming d >= 2;
+    the segmenters without an HMM accept them."""
+    g = torch.Generator().manual_seed(0)
+    t = torch.linspace(0, 1, 60, dtype=F64)
+    seqs = [torch.cat([t, 1 + 0 * t, 1 - t]).unsqueeze(-1) + 0.01 * torch.randn(180, 1, generator=g, dtype=F64)]
+    with pytest.raises(InvalidArgumentError, match="d >= 2"):
+        segment(seqs, generator=g, n_iterations=2, n_chains=1)
+    seg = FixedSegmenter([1 / 3, 2 / 3])(seqs)
+    assert seg.n_steps == 3 and seg.dim == 1
+    assert NoSegmenter()(seqs).n_steps == 1
 
 
-def test_hyperparameter_step_redraws_auxiliary_transition_weights():
-    # the weights outside the owned blocks (and the row totals) are prior draws given (alpha, kappa); after alpha
-    # and kappa move they must follow the new values, while pi on the owned blocks stays unchanged
-    from lfd_torch.segmentation.sampler import _Run
-    from lfd_torch.segmentation.transitions import transition_matrix
-
-    g = torch.Generator().manual_seed(4)
-    x = torch.randn(3, 20, 2, generator=g, dtype=F64)
-    cfg = BetaProcessHMMSampler(n_chains=64, n_initial_features=2, transition_concentration=1.0, stickiness=2.0)
-    run = _Run(cfg, x, torch.full((3,), 20), g, None)
-    run._grow(3)  # free (unowned) slots: their weights are auxiliary
-    run.alpha = torch.full((64,), 40.0, dtype=F64)  # as if the hyperparameters had moved far since the last draw
-    pi_before = transition_matrix(run.eta, run.F)
-    run._sample_hyperparameters()
-    torch.testing.assert_close(transition_matrix(run.eta, run.F), pi_before)
-    f = run.F.to(F64)
-    off = (1 - f.unsqueeze(-1) * f.unsqueeze(-2)) * (1 - torch.eye(run.F.shape[-1], dtype=F64))  # unowned, j != k
-    ratio = (run.eta * off).sum((1, 2, 3)) / off.sum((1, 2, 3)) / run.alpha  # E[eta_jk] = alpha off the diagonal
-    assert abs(float(ratio.mean()) - 1.0) < 0.05, float(ratio.mean())
+# ---------------------------------------------------------------------------------------------- configs
+def test_segmenter_equals_segment_with_the_same_hyperparameters():
+    """Property: ``BPGMHMMSegmenter(**cfg)(demos, generator=g)`` equals ``segment(demos, generator=g, **cfg)``."""
+    syn = synthetic(*MUTATION_CASE)
+    cfg = dict(FAST, stickiness=20.0, min_length=0.05)
+    a = BPGMHMMSegmenter(**cfg)(syn.demos, generator=torch.Generator().manual_seed(4))
+    b = segment(syn.demos, generator=torch.Generator().manual_seed(4), **cfg)
+    assert all(torch.equal(u, v) for u, v in zip(a.labels, b.labels)) and torch.equal(a.attractors, b.attractors)
 
 
-@pytest.mark.parametrize("seed", [1, 3])
-def test_synthetic_steps_follow_the_hmm_state_switches(seed):
-    # Steps are runs of HMM states: every boundary lies within the local refinement radius of a switch of the
-    # sampled state sequence, so the corners are found only if the sampler's switches are near them. At a coarse
-    # resolution (max_samples=30, ~7 points per leg) a labeller that ignores the data (a new label every few
-    # points) leaves corners out of reach of every candidate; the BP-GM-HMM puts its switches at the corners.
-    W = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.0, 2.0]], dtype=F64)
-    syn = multi_step_demos(torch.Generator().manual_seed(seed), waypoints=W, n_demos=3, samples_per_step=60,
-                           profile="constant")  # fmt: skip
-    seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), max_samples=30, min_length=0.02, **FAST)
-    assert seg.n_steps == 4
-    for i in range(3):
-        switches = torch.tensor(seg.info["hmm_switches"][i], dtype=torch.long)
-        torch.testing.assert_close(runs(seg.states[i])[0][1:], switches)  # the switches of the returned states
-        inner = seg.boundaries[i, 1:-1]
-        dist = (inner.unsqueeze(-1) - switches.unsqueeze(0)).abs().amin(-1)
-        assert int(dist.max()) <= seg.info["refine_radius"][i]
-    err = boundary_errors(seg, syn.switch_times, syn.demos.lengths)
-    assert float(err.max()) <= 0.035, err
+def test_bp_gm_hmm_config_matches_segment_signature():
+    """Property: the keys of conf/segmentation/bp_gm_hmm.yaml are ``segment``'s keyword arguments one for one (as the
+    file says), with ``segment``'s defaults as values, and the instantiated partial runs."""
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose(config_name="segmentation/bp_gm_hmm")
+    node = cfg.segmentation
+    keys = {k for k in node.keys() if not str(k).startswith("_")}
+    valid = set(inspect.signature(segment).parameters) - {"demos", "generator"}
+    assert keys == valid, f"not accepted: {sorted(keys - valid)}, missing: {sorted(valid - keys)}"
+    defaults = {k: inspect.signature(segment).parameters[k].default for k in valid}
+    assert {k: node[k] for k in keys} == defaults
+    node.n_iterations = 4
+    node.n_chains = 1
+    syn = multi_step_demos(torch.Generator().manual_seed(6), n_demos=2, n_steps=3, samples_per_step=40)
+    seg = instantiate(node)(syn.demos, generator=torch.Generator().manual_seed(6))
+    assert isinstance(seg, Segmentation) and seg.n_sequences == 2
+
+
+@pytest.mark.parametrize("option", ["fixed", "none"])
+def test_ablation_configs_instantiate_and_run(option):
+    """Property: the FixedSegmenter / NoSegmenter configs instantiate and give pieces that tile every demo."""
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose(config_name=f"segmentation/{option}")
+    segmenter = instantiate(cfg.segmentation)
+    syn = multi_step_demos(torch.Generator().manual_seed(6), n_demos=2, n_steps=3, samples_per_step=40)
+    seg = segmenter(syn.demos, generator=torch.Generator().manual_seed(6))
+    assert isinstance(seg, Segmentation)
+    for i in range(2):
+        assert int(seg.pieces[i][-1, 2]) == int(syn.demos.lengths[i]) and int(seg.pieces[i][0, 1]) == 0
+    assert math.isfinite(float(seg.attractors.sum()))
+
+
+# ---------------------------------------------------------------------------------------------- CUDA
+@pytest.mark.cuda
+@requires_cuda
+def test_segment_on_cuda():
+    """Property: on CUDA data with a CUDA generator the result lives on the device, gets the true steps of an easy
+    case, and its densities and splits work there."""
+    syn = multi_step_demos(torch.Generator().manual_seed(0), n_demos=3, n_steps=3, samples_per_step=80, profile="constant")
+    demos = syn.demos.to(device="cuda")
+    seg = segment(demos, generator=torch.Generator(device="cuda").manual_seed(0))
+    ok, report = step_accuracy(seg, syn.switch_times, syn.demos.lengths)
+    assert ok, report
+    assert seg.attractors.device.type == "cuda" and seg.labels[0].device.type == "cuda"
+    assert seg.pieces[0].device.type == "cuda" and seg.route_of.device.type == "cuda"
+    assert seg.log_density(demos.positions).shape == (*demos.positions.shape[:2], seg.n_steps)
+    parts = seg.split(demos, end_at_attractor=True)
+    assert parts[-1].positions.device.type == "cuda"
+    torch.testing.assert_close(parts[-1].attractor, demos.attractor)

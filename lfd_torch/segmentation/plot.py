@@ -63,18 +63,17 @@ def plot_segmentation(
         gy = torch.linspace(float(lo[1]), float(hi[1]), grid_size, dtype=torch.float64, device="cpu")
         X, Y = torch.meshgrid(gx, gy, indexing="xy")
         pts = torch.stack([X, Y], -1)
-        ld = segmentation.log_density(pts.to(segmentation.state_mean)).cpu()  # (G, G, M)
+        ld = segmentation.log_density(pts.to(segmentation.space_mean)).cpu()  # (G, G, M)
         best = ld.argmax(-1).to(torch.float64)
-        level = torch.quantile(segmentation.log_density(x_all.to(segmentation.state_mean)).amax(-1).cpu(), 0.01) - 10.0
+        level = torch.quantile(segmentation.log_density(x_all.to(segmentation.space_mean)).amax(-1).cpu(), 0.01) - 10.0
         best[ld.amax(-1) < level] = float("nan")
         ax.pcolormesh(X.numpy(), Y.numpy(), best.numpy(), cmap=ListedColormap(colors), vmin=-0.5, vmax=M - 0.5,
                       alpha=0.18, shading="auto")  # fmt: skip
     else:
         ax = fig.add_subplot(1, 1, 1, projection="3d")
     for i, seq in enumerate(demos.sequences()):
-        b = segmentation.boundaries[i].tolist()
-        for m in range(M):
-            piece = seq[b[m] : min(b[m + 1] + 1, len(seq))].cpu().numpy()
+        for m, a, b in segmentation.pieces[i].tolist():
+            piece = seq[a : min(b + 1, len(seq))].cpu().numpy()
             ax.plot(*piece[:, : min(d, 3)].T, color=colors[m], lw=1.4)
     g = segmentation.attractors.cpu().numpy()
     for m in range(M):

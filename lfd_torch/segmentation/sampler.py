@@ -4,7 +4,7 @@ Notation:
     C  independent chains, N sequences, T padded length (after optional subsampling), d state dimension
     K  feature slots shared by all chains (grown and compacted as features are born and die)
     features  (C, N, K) bool   f_i per chain
-    mean      (C, K, d), covariance (C, K, d, d)   Gaussian emission of each feature (paper eq. 4)
+    field     (C, K, d, d + 1), noise (C, K, d, d)   direction-field emission of each feature (:mod:`.field`)
     weights   (C, N, K, K)      sticky transition weights eta (paper eq. 3, see transitions.py)
     states    (C, N, T) long    hidden state sequences
 
@@ -38,15 +38,16 @@ import torch
 from torch import Tensor
 
 from lfd_torch.errors import NonFiniteError, ShapeMismatchError, TooFewSamplesError
-from lfd_torch.segmentation.emissions import (
-    NIWPrior,
-    gaussian_log_density,
-    niw_log_density,
-    niw_posterior,
-    niw_prior_from_data,
-    sample_gamma,
-    sample_niw,
-    sufficient_statistics,
+from lfd_torch.gmm import sample_gamma
+from lfd_torch.segmentation.field import (
+    FieldPrior,
+    field_log_density,
+    field_log_likelihood,
+    field_observations,
+    field_posterior,
+    field_prior,
+    field_statistics,
+    sample_field,
 )
 from lfd_torch.segmentation.features import ibp_log_prior, shared_log_odds, unique_feature_rate
 from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood
@@ -55,6 +56,8 @@ from lfd_torch.segmentation.transitions import (
     initial_distribution,
     sample_transition_weights_posterior,
     sample_transition_weights_prior,
+    expand_min_duration,
+    free_transitions,
     transition_counts,
     transition_matrix,
 )
@@ -74,8 +77,9 @@ class SamplerResult:
             the K features below.
         lengths: (N,) valid samples per sequence on the sampled grid.
         features: (N, K) bool feature matrix F.
-        mean: (K, d) emission means.
-        covariance: (K, d, d) emission covariances.
+        field: (K, d, d + 1) direction field of every state on the standardised positions (:mod:`.field`).
+        noise: (K, d, d) direction noise covariance of every state.
+        centre: (d,) and radius: () standardisation of the positions, x~ = (x - centre) / radius.
         log_prob: joint log probability of the returned sample.
         trace: (C, n_iterations) joint log probability of every chain after every sweep.
         n_features_trace: (C, n_iterations) number of features owned by at least one sequence.
@@ -87,8 +91,10 @@ class SamplerResult:
     states: Tensor
     lengths: Tensor
     features: Tensor
-    mean: Tensor
-    covariance: Tensor
+    field: Tensor
+    noise: Tensor
+    centre: Tensor
+    radius: Tensor
     log_prob: float
     trace: Tensor
     n_features_trace: Tensor
@@ -98,7 +104,7 @@ class SamplerResult:
 
     @property
     def n_features(self) -> int:
-        return self.mean.shape[0]
+        return self.field.shape[0]
 
 
 class BetaProcessHMMSampler:
@@ -109,9 +115,10 @@ class BetaProcessHMMSampler:
         feature_concentration: c, concentration of the Beta process (paper eq. 1 alpha).
         transition_concentration: alpha of the sticky Dirichlet rows (paper eq. 3 beta).
         stickiness: kappa, extra weight on self-transitions (paper eq. 3).
-        covariance_scale: expected emission covariance as a fraction of the data variance (NIW prior scale).
-        mean_pseudo_count: kappa0 of the NIW prior.
-        extra_dof: nu0 - d - 1 of the NIW prior.
+        direction_noise: prior expected standard deviation of the direction noise of a state's field
+            (:func:`~lfd_torch.segmentation.field.field_prior`).
+        extra_dof: nu0 - d - 1 of the field prior (its weight).
+        robust_dof: nu of the Student-t direction emission (None: Gaussian), see :mod:`.field`.
         n_chains: independent chains C (run batched).
         n_iterations: sweeps per chain.
         burn_in: fraction of the sweeps discarded before the best sample is searched.
@@ -130,9 +137,10 @@ class BetaProcessHMMSampler:
         feature_concentration: float = 1.0,
         transition_concentration: float = 1.0,
         stickiness: float = 25.0,
-        covariance_scale: float = 0.05,
-        mean_pseudo_count: float = 0.01,
+        direction_noise: float = 0.2,
         extra_dof: float = 2.0,
+        robust_dof: float | None = 4.0,
+
         n_chains: int = 4,
         n_iterations: int = 100,
         burn_in: float = 0.5,
@@ -144,8 +152,8 @@ class BetaProcessHMMSampler:
     ) -> None:
         positive = dict(
             feature_mass=feature_mass, feature_concentration=feature_concentration,
-            transition_concentration=transition_concentration, covariance_scale=covariance_scale,
-            mean_pseudo_count=mean_pseudo_count, extra_dof=extra_dof, birth_window=birth_window,
+            transition_concentration=transition_concentration, direction_noise=direction_noise,
+            extra_dof=extra_dof, birth_window=birth_window,
         )  # fmt: skip
         for name, value in positive.items():
             if not (isinstance(value, (int, float)) and value > 0 and math.isfinite(value)):
@@ -162,8 +170,10 @@ class BetaProcessHMMSampler:
         self.feature_concentration = float(feature_concentration)
         self.transition_concentration = float(transition_concentration)
         self.stickiness = float(stickiness)
-        self.covariance_scale = float(covariance_scale)
-        self.mean_pseudo_count = float(mean_pseudo_count)
+        self.direction_noise = float(direction_noise)
+        if robust_dof is not None and not robust_dof > 0:
+            raise ValueError(f"robust_dof must be > 0 or None, got {robust_dof!r}")
+        self.robust_dof = None if robust_dof is None else float(robust_dof)
         self.extra_dof = float(extra_dof)
         self.n_chains = int(n_chains)
         self.n_iterations = int(n_iterations)
@@ -175,19 +185,30 @@ class BetaProcessHMMSampler:
         self.progress = bool(progress)
 
     # ------------------------------------------------------------------ public
-    def run(self, sequences: list[Tensor], generator: torch.Generator, prior: NIWPrior | None = None) -> SamplerResult:
+    def run(
+        self, sequences: list[Tensor], velocities: list[Tensor], generator: torch.Generator,
+        prior: FieldPrior | None = None, min_duration: int = 1, velocity_noise: Tensor | float = 0.0,
+        speed_floor: float = 0.0,
+    ) -> SamplerResult:
         """Sample the BP-GM-HMM posterior of a set of sequences.
 
         Args:
-            sequences: N tensors (T_i, d), T_i >= 2, all with the same d, dtype and device.
+            sequences: N position tensors (T_i, d), T_i >= 2, all with the same d, dtype and device.
+            velocities: N velocity tensors (T_i, d) of the same sequences.
             generator: source of all randomness (on the sequences' device).
-            prior: NIW prior of the emissions; None sets it from the data (:func:`niw_prior_from_data`).
+            prior: MNIW prior of the state fields; None uses :func:`field_prior` with ``direction_noise``.
+            velocity_noise, speed_floor: of :func:`~lfd_torch.segmentation.field.field_observations`.
+            min_duration: D, shortest run of a state in samples of the given grid
+                (:func:`~lfd_torch.segmentation.transitions.expand_min_duration`).
 
         Returns:
             SamplerResult of the best sample.
         """
         x, lengths = _pad(sequences)
-        run = _Run(self, x, lengths, generator, prior)
+        v, lengths_v = _pad(velocities)
+        if v.shape != x.shape or not torch.equal(lengths, lengths_v):
+            raise ShapeMismatchError("velocities must have the shapes of the sequences")
+        run = _Run(self, x, v, lengths, generator, prior, min_duration, (velocity_noise, speed_floor))
         return run.sample()
 
 
@@ -212,23 +233,22 @@ class _Run:
     """Mutable state of one sampler run (all chains batched)."""
 
     def __init__(
-        self, cfg: BetaProcessHMMSampler, x: Tensor, lengths: Tensor, generator: torch.Generator, prior: NIWPrior | None
+        self, cfg: BetaProcessHMMSampler, x: Tensor, v: Tensor, lengths: Tensor, generator: torch.Generator,
+        prior: FieldPrior | None, min_duration: int, noise: tuple[Tensor | float, float],
     ) -> None:
         self.cfg = cfg
         self.gen = generator
         self.x = x  # (N, T, d)
         self.N, self.T, self.d = x.shape
         self.C = cfg.n_chains
-        self.xc = x.unsqueeze(0).expand(self.C, *x.shape)  # (C, N, T, d): per-chain data view (shared here)
         self.lengths = lengths
         self.dtype, self.device = x.dtype, x.device
         self.valid = torch.arange(self.T, device=self.device).unsqueeze(0) < lengths.unsqueeze(1)  # (N, T)
-        flat = x[self.valid]
+        self.obs = field_observations(x, v, self.valid, velocity_noise=noise[0], direction_noise=cfg.direction_noise,
+                                      speed_floor=noise[1])
         if prior is None:
-            prior = niw_prior_from_data(
-                flat, covariance_scale=cfg.covariance_scale, mean_pseudo_count=cfg.mean_pseudo_count,
-                extra_dof=cfg.extra_dof,
-            )  # fmt: skip
+            prior = field_prior(self.d, direction_noise=cfg.direction_noise, extra_dof=cfg.extra_dof,
+                                dtype=self.dtype, device=self.device)
         self.prior = prior
         self.mass = torch.full((self.C,), cfg.feature_mass, dtype=self.dtype, device=self.device)
         self.alpha = torch.full((self.C,), cfg.transition_concentration, dtype=self.dtype, device=self.device)
@@ -236,6 +256,7 @@ class _Run:
         self.window = (lengths.to(self.dtype) * cfg.birth_window).round().long().clamp_min(min(self.d + 2, 4))
         self.window = torch.minimum(self.window, lengths)
         self.accept = {"shared": [0, 0], "birth": [0, 0], "death": [0, 0]}
+        self.D = int(min_duration)
         self._initialise()
 
     # ------------------------------------------------------------------ helpers
@@ -249,19 +270,37 @@ class _Run:
             device=self.device,
         )  # fmt: skip
 
-    def _emission(self, mean: Tensor, covariance: Tensor) -> Tensor:
-        """(C, N, T, K) log emission densities of every sample under every slot."""
-        C, K = mean.shape[:2]
-        flat = self.xc.reshape(C, self.N * self.T, self.d)
-        return gaussian_log_density(flat, mean, covariance).reshape(C, self.N, self.T, K)
+    def _emission(self, field: Tensor, noise: Tensor) -> Tensor:
+        """(C, N, T, K) log emission densities of every sample under every slot; field (C, K, d, p), noise (C, K, d, d)."""
+        C, K = field.shape[:2]
+        o = self.obs
+        ll = field_log_likelihood(
+            o.z.reshape(1, self.N * self.T, -1), o.u.reshape(1, self.N * self.T, -1), o.w.reshape(1, -1), field, noise,
+            self.cfg.robust_dof,
+        )
+        return ll.reshape(C, self.N, self.T, K)
 
     def _marginal(self, features: Tensor, weights: Tensor, log_emission: Tensor, lengths: Tensor) -> Tensor:
         """log p(x | f, eta, theta), states summed out. features (B, K), weights (B, K, K), log_emission (B, T, K)."""
-        le = log_emission.masked_fill(~features.unsqueeze(1), _NEG_INF)
-        init = initial_distribution(features, self.dtype)
-        P = transition_matrix(weights, features)
+        D = self.D
+        le = self._complete_last_run(log_emission.masked_fill(~features.unsqueeze(1), _NEG_INF).repeat_interleave(D, -1), lengths)
+        init, P = expand_min_duration(initial_distribution(features, self.dtype), transition_matrix(weights, features), D)
         ll = forward_log_likelihood(le, init, P, lengths)
         return torch.where(features.any(-1), ll, torch.full_like(ll, _NEG_INF))
+
+    def _complete_last_run(self, log_emission: Tensor, lengths: Tensor) -> Tensor:
+        """Forbid ending inside the forced phases: the last run of a sequence lasts at least D samples too.
+
+        log_emission (B, T, K D) on the phase-expanded states; the last valid sample may only be emitted from a
+        last phase (D - 1), which is the semi-Markov model's end condition (a run is complete when it ends).
+        """
+        D = self.D
+        if D <= 1:
+            return log_emission
+        B, T, KD = log_emission.shape
+        not_last_phase = (torch.arange(KD, device=self.device) % D) != D - 1  # (K D,)
+        at_end = torch.arange(T, device=self.device).unsqueeze(0) == (lengths - 1).unsqueeze(1)  # (B, T)
+        return log_emission.masked_fill(at_end.unsqueeze(-1) & not_last_phase, _NEG_INF)
 
     def _marginal_all(self) -> Tensor:
         C, N, K = self.F.shape
@@ -271,33 +310,28 @@ class _Run:
         )  # fmt: skip
         return ll.reshape(C, N)
 
+    def _prior_draw(self, *batch: int) -> tuple[Tensor, Tensor]:
+        p = self.prior
+        d, q = p.mean.shape[-2:]
+        expanded = FieldPrior(mean=p.mean.expand(*batch, d, q), row_covariance=p.row_covariance.expand(*batch, q, q),
+                              dof=p.dof.expand(batch), scale=p.scale.expand(*batch, d, d))
+        return sample_field(expanded, self.gen)
+
     # ------------------------------------------------------------------ initialisation
     def _initialise(self) -> None:
         C, N, K = self.C, self.N, self.cfg.n_initial_features
-        # features from random windows of random sequences
-        means, covs = [], []
-        for _ in range(K):
-            seq = torch.randint(N, (C,), generator=self.gen, device=self.device)
-            mu_k, cov_k = [], []
-            for c in range(C):
-                i = int(seq[c])
-                L = int(self.window[i])
-                start = torch.randint(int(self.lengths[i]) - L + 1, (1,), generator=self.gen, device=self.device)
-                xw = self.xc[c, i, int(start) : int(start) + L]
-                stats = sufficient_statistics(xw, torch.ones(L, 1, dtype=self.dtype, device=self.device))
-                post = niw_posterior(self.prior, stats[0][0], stats[1][0], stats[2][0])
-                m, s = sample_niw(post, self.gen)
-                mu_k.append(m)
-                cov_k.append(s)
-            means.append(torch.stack(mu_k))
-            covs.append(torch.stack(cov_k))
-        self.mean = torch.stack(means, 1)  # (C, K, d)
-        self.cov = torch.stack(covs, 1)
+        # features from the posteriors of random windows of random sequences (all chains and features at once)
+        seq = torch.randint(N, (C, K), generator=self.gen, device=self.device)
+        n_start = (self.lengths - self.window + 1)[seq].to(self.dtype)
+        start = (self._rand(C, K) * n_start).floor().long()
+        post = self._window_posterior(seq, start)
+        self.field, self.noise = sample_field(post, self.gen)  # (C, K, d, p), (C, K, d, d)
         self.F = torch.ones(C, N, K, dtype=torch.bool, device=self.device)
         self.eta = self._gamma_prior_weights((N,), K)
-        self.loge = self._emission(self.mean, self.cov)
+        self.loge = self._emission(self.field, self.noise)
         self.ll = self._marginal_all()
         self.s = torch.zeros(C, N, self.T, dtype=torch.long, device=self.device)
+        self.phase = torch.zeros_like(self.s)
         self._sample_states()
 
     # ------------------------------------------------------------------ slot management
@@ -317,12 +351,13 @@ class _Run:
         C, N, K = self.F.shape
         keep = perm[:, :K_new]  # (C, K_new)
         self.F = self.F.gather(-1, keep.view(C, 1, K_new).expand(C, N, K_new))
-        self.mean = self.mean.gather(1, keep.view(C, K_new, 1).expand(C, K_new, self.d))
-        self.cov = self.cov.gather(1, keep.view(C, K_new, 1, 1).expand(C, K_new, self.d, self.d))
+        q = self.field.shape[-1]
+        self.field = self.field.gather(1, keep.view(C, K_new, 1, 1).expand(C, K_new, self.d, q))
+        self.noise = self.noise.gather(1, keep.view(C, K_new, 1, 1).expand(C, K_new, self.d, self.d))
         eta = self.eta.gather(2, keep.view(C, 1, K_new, 1).expand(C, N, K_new, K))
         self.eta = eta.gather(3, keep.view(C, 1, 1, K_new).expand(C, N, K_new, K_new))
         self.loge = self.loge.gather(-1, keep.view(C, 1, 1, K_new).expand(C, N, self.T, K_new))
-        self.s = inverse.gather(1, self.s.reshape(C, -1)).reshape(C, N, self.T)
+        self.s = inverse.gather(1, self.s.reshape(C, -1)).reshape(C, N, self.T)  # phases are unchanged
 
     def _grow(self, n_free: int) -> None:
         """Make sure every chain has at least ``n_free`` slots it does not use."""
@@ -331,13 +366,9 @@ class _Run:
         if extra == 0:
             return
         K = self.F.shape[-1]
-        m, s = sample_niw(
-            NIWPrior(self.prior.mean.expand(self.C, extra, self.d), self.prior.kappa, self.prior.dof,
-                     self.prior.scale.expand(self.C, extra, self.d, self.d)),
-            self.gen,
-        )  # fmt: skip
-        self.mean = torch.cat([self.mean, m], 1)
-        self.cov = torch.cat([self.cov, s], 1)
+        m, s = self._prior_draw(self.C, extra)
+        self.field = torch.cat([self.field, m], 1)
+        self.noise = torch.cat([self.noise, s], 1)
         self.F = torch.cat([self.F, self.F.new_zeros(self.C, self.N, extra)], -1)
         new_eta = self._gamma_prior_weights((self.N,), K + extra)
         new_eta[:, :, :K, :K] = self.eta
@@ -397,27 +428,25 @@ class _Run:
                     n_own[:, i] += torch.where(ok, torch.where(own, -1, 1), 0)
             self.ll = table.gather(-1, state.unsqueeze(-1)).squeeze(-1)
 
-    def _windows(self, start: Tensor) -> tuple[Tensor, Tensor]:
-        """Window samples and mask for window starts (C, N): (C, N, Lmax, d), (C, N, Lmax, 1)."""
+    def _window_posterior(self, seq: Tensor, start: Tensor) -> FieldPrior:
+        """Field posterior of the windows x^(seq)[start : start + L_seq]; seq and start (...) long."""
         Lmax = int(self.window.max())
         offs = torch.arange(Lmax, device=self.device)
-        idx = (start.unsqueeze(-1) + offs).clamp_max(self.T - 1)  # (C, N, Lmax)
-        mask = (offs < self.window.view(1, self.N, 1)).to(self.dtype).unsqueeze(-1).expand(self.C, self.N, Lmax, 1)
-        seq = torch.arange(self.N, device=self.device).view(1, self.N, 1)
-        chain = torch.arange(self.C, device=self.device).view(self.C, 1, 1)
-        return self.xc[chain, seq, idx], mask
+        idx = (start.unsqueeze(-1) + offs).clamp_max(self.T - 1)  # (..., Lmax)
+        mask = (offs < self.window[seq].unsqueeze(-1)).to(self.dtype)  # (..., Lmax)
+        sq = seq.unsqueeze(-1)
+        o = self.obs
+        counts, szz, suz, suu = field_statistics(o.z[sq, idx], o.u[sq, idx], o.w[sq, idx], mask.unsqueeze(-1))
+        return field_posterior(self.prior, counts[..., 0], szz[..., 0, :, :], suz[..., 0, :, :], suu[..., 0, :, :])
 
-    def _window_posterior_all(self, start: Tensor) -> NIWPrior:
-        xw, mask = self._windows(start)
-        counts, sums, outer = sufficient_statistics(xw, mask)
-        return niw_posterior(self.prior, counts[..., 0], sums[..., 0, :], outer[..., 0, :, :])
-
-    def _log_window_scores(self, mean: Tensor, covariance: Tensor) -> Tensor:
+    def _log_window_scores(self, field: Tensor, noise: Tensor) -> Tensor:
         """log r(W | theta_ci) over the window starts of every sequence: (C, N, T), -inf on invalid starts.
 
-        r weights a window by exp(mean log density of its samples under theta).
+        r weights a window by exp(mean log density of its samples under theta); field (C, N, d, p).
         """
-        ll = gaussian_log_density(self.xc, mean.unsqueeze(2), covariance.unsqueeze(2))[..., 0]
+        o = self.obs
+        ll = field_log_likelihood(o.z.unsqueeze(0), o.u.unsqueeze(0), o.w.unsqueeze(0), field.unsqueeze(2),
+                                  noise.unsqueeze(2), self.cfg.robust_dof)[..., 0]  # (C, N, T)
         csum = torch.cat([ll.new_zeros(self.C, self.N, 1), ll.cumsum(-1)], dim=-1)  # (C, N, T + 1)
         starts = torch.arange(self.T, device=self.device)
         end = (starts.view(1, -1) + self.window.view(-1, 1)).clamp_max(self.T)  # (N, T)
@@ -446,13 +475,12 @@ class _Run:
         n_start = (self.lengths - self.window + 1).to(self.dtype)  # (N,)
         # birth: window W ~ uniform, theta* ~ q(. | W), one free slot per (c, i)
         start_b = (self._rand(C, N) * n_start).floor().long()
-        post = self._window_posterior_all(start_b)
-        mp, sp = sample_niw(post, self.gen)
-        flat_prior = NIWPrior(self.prior.mean.expand(C, N, self.d), self.prior.kappa, self.prior.dof,
-                              self.prior.scale.expand(C, N, self.d, self.d))  # fmt: skip
-        m0, s0 = sample_niw(flat_prior, self.gen)
+        seq_all = torch.arange(N, device=self.device).expand(C, N)
+        post = self._window_posterior(seq_all, start_b)
+        mp, sp = sample_field(post, self.gen)
+        m0, s0 = self._prior_draw(C, N)
         from_prior = self._rand(C, N) < self.cfg.birth_prior_mix
-        mean_b = torch.where(from_prior[..., None], m0, mp)
+        mean_b = torch.where(from_prior[..., None, None], m0, mp)
         cov_b = torch.where(from_prior[..., None, None], s0, sp)
         free = ~self.F.any(1)  # (C, K)
         rank = free.long().cumsum(-1) - 1
@@ -462,27 +490,29 @@ class _Run:
         pick = torch.rand(C, N, K, generator=self.gen, dtype=self.dtype, device=self.device).masked_fill(~unique, -1.0)
         slot_d = torch.argmax(pick, -1)
         cidx = torch.arange(C, device=self.device).view(C, 1)
-        mean_d, cov_d = self.mean[cidx, slot_d], self.cov[cidx, slot_d]
+        mean_d, cov_d = self.field[cidx, slot_d], self.noise[cidx, slot_d]
         # one set of window scores for the parameter each move is about
-        mean_t = torch.where(birth[..., None], mean_b, mean_d)
+        mean_t = torch.where(birth[..., None, None], mean_b, mean_d)
         cov_t = torch.where(birth[..., None, None], cov_b, cov_d)
         log_r_all = self._log_window_scores(mean_t, cov_t)  # (C, N, T)
         start_d = torch.multinomial(torch.exp(log_r_all).reshape(C * N, self.T), 1, generator=self.gen).reshape(C, N)
         start_t = torch.where(birth, start_b, start_d)
         log_r = log_r_all.gather(-1, start_t.unsqueeze(-1)).squeeze(-1)
-        post_t = self._window_posterior_all(start_t)
+        post_t = self._window_posterior(seq_all, start_t)
         eps = self.cfg.birth_prior_mix
+        log_prior_theta = field_log_density(mean_t, cov_t, self.prior)
         log_q = torch.logaddexp(
-            math.log1p(-eps) + niw_log_density(mean_t, cov_t, post_t), math.log(eps) + niw_log_density(mean_t, cov_t, self.prior)
+            math.log1p(-eps) + field_log_density(mean_t, cov_t, post_t), math.log(eps) + log_prior_theta
         )
-        log_prior_theta = niw_log_density(mean_t, cov_t, self.prior)
         n_big = torch.where(birth, n_unique + 1, n_unique).clamp_min(1).to(self.dtype)
         log_extra = torch.log(rate) - torch.log(n_big) + log_prior_theta - log_q + log_r + torch.log(n_start)
         # proposed feature rows and emission columns
         slot = torch.where(birth, slot_b, slot_d)
         f_new = self.F.clone()
         f_new.scatter_(-1, slot.unsqueeze(-1), birth.unsqueeze(-1))
-        le_b = gaussian_log_density(self.xc, mean_b.unsqueeze(2), cov_b.unsqueeze(2))  # (C, N, T, 1)
+        o = self.obs
+        le_b = field_log_likelihood(o.z.unsqueeze(0), o.u.unsqueeze(0), o.w.unsqueeze(0), mean_b.unsqueeze(2),
+                                    cov_b.unsqueeze(2), self.cfg.robust_dof)  # (C, N, T, 1)
         le_new = self.loge.clone()
         le_new.scatter_(-1, slot_b.view(C, N, 1, 1).expand(C, N, self.T, 1), le_b)
         ll_new = self._marginal(
@@ -501,33 +531,46 @@ class _Run:
         if bool(born.any()):
             c_idx, i_idx = torch.nonzero(born, as_tuple=True)
             sb = slot_b[c_idx, i_idx]
-            self.mean[c_idx, sb] = mean_b[c_idx, i_idx]
-            self.cov[c_idx, sb] = cov_b[c_idx, i_idx]
-            self.loge = self._emission(self.mean, self.cov)
+            self.field[c_idx, sb] = mean_b[c_idx, i_idx]
+            self.noise[c_idx, sb] = cov_b[c_idx, i_idx]
+            self.loge = self._emission(self.field, self.noise)
 
     def _sample_states(self) -> None:
         C, N, K = self.F.shape
         f = self.F.reshape(C * N, K)
-        le = self.loge.reshape(C * N, self.T, K).masked_fill(~f.unsqueeze(1), _NEG_INF)
-        init = initial_distribution(f, self.dtype)
-        P = transition_matrix(self.eta.reshape(C * N, K, K), f)
+        D = self.D
+        lengths = self.lengths.repeat(C)
+        le = self.loge.reshape(C * N, self.T, K).masked_fill(~f.unsqueeze(1), _NEG_INF).repeat_interleave(D, -1)
+        le = self._complete_last_run(le, lengths)
+        init, P = expand_min_duration(initial_distribution(f, self.dtype), transition_matrix(self.eta.reshape(C * N, K, K), f), D)
         lengths = self.lengths.repeat(C)
         filtered, _ = forward_filter(le, init, P, lengths)
-        self.s = backward_sample(filtered, P, lengths, self.gen).reshape(C, N, self.T)
+        es = backward_sample(filtered, P, lengths, self.gen).reshape(C, N, self.T)
+        self.s, self.phase = es // D, es % D
 
     def _sample_parameters(self) -> None:
         C, N, K = self.F.shape
         onehot = torch.nn.functional.one_hot(self.s, K).to(self.dtype) * self.valid.unsqueeze(-1).to(self.dtype)
-        counts, sums, outer = sufficient_statistics(
-            self.xc.reshape(C, N * self.T, self.d), onehot.reshape(C, N * self.T, K)
+        o = self.obs
+        w = o.w.expand(C, N, self.T)
+        if self.cfg.robust_dof is not None:  # Student t as a scale mixture: lambda_t | state, residual
+            nu = self.cfg.robust_dof
+            _, q = field_log_likelihood(o.z.unsqueeze(0), o.u.unsqueeze(0), o.w.unsqueeze(0), self.field.unsqueeze(1),
+                                        self.noise.unsqueeze(1), nu, maha_out=True)  # (C, N, T, K)
+            q_s = q.gather(-1, self.s.unsqueeze(-1)).squeeze(-1)
+            shape = torch.full_like(q_s, 0.5 * (nu + self.d))
+            lam = sample_gamma(shape, self.gen) / (0.5 * (nu + q_s))
+            w = w * lam
+        stats = field_statistics(
+            o.z.reshape(1, N * self.T, -1), o.u.reshape(1, N * self.T, -1), w.reshape(C, N * self.T),
+            onehot.reshape(C, N * self.T, K),
         )
-        post = niw_posterior(self.prior, counts, sums, outer)
-        self.mean, self.cov = sample_niw(post, self.gen)
-        trans = transition_counts(self.s, self.lengths.expand(C, N), K).to(self.dtype)
+        self.field, self.noise = sample_field(field_posterior(self.prior, *stats), self.gen)
+        trans = transition_counts(self.s, self.lengths.expand(C, N), K, free_transitions(self.phase, self.D)).to(self.dtype)
         self.eta = sample_transition_weights_posterior(
             trans, self.F, self.alpha.view(C, 1, 1, 1), self.kappa.view(C, 1, 1, 1), self.gen
         )
-        self.loge = self._emission(self.mean, self.cov)
+        self.loge = self._emission(self.field, self.noise)
         self.ll = self._marginal_all()
 
     def _sample_hyperparameters(self) -> None:
@@ -572,9 +615,10 @@ class _Run:
         lp = lp + torch.log(torch.gather(init, -1, self.s[..., :1]).squeeze(-1)).sum(-1)
         prev, nxt = self.s[..., :-1], self.s[..., 1:]
         trans = P.gather(-2, prev.unsqueeze(-1).expand(C, N, self.T - 1, K)).gather(-1, nxt.unsqueeze(-1)).squeeze(-1)
-        lp = lp + (torch.log(trans.clamp_min(1e-300)) * self.valid[:, 1:]).sum((-1, -2))
+        free = free_transitions(self.phase, self.D) & self.valid[:, 1:]  # forced phase moves have probability 1
+        lp = lp + (torch.log(trans.clamp_min(1e-300)) * free).sum((-1, -2))
         owned = f.any(1)  # (C, K)
-        lp = lp + (niw_log_density(self.mean, self.cov, self.prior) * owned).sum(-1)
+        lp = lp + (field_log_density(self.field, self.noise, self.prior) * owned).sum(-1)
         for c in range(C):
             lp[c] = lp[c] + ibp_log_prior(f[c], self.mass[c], self.cfg.feature_concentration).to(self.dtype)
             lp[c] = lp[c] + dirichlet_log_density_rows(P[c], f[c], float(self.alpha[c]), float(self.kappa[c])).sum()
@@ -619,8 +663,10 @@ class _Run:
             states=snap["states"],
             lengths=self.lengths.clone(),
             features=snap["features"],
-            mean=snap["mean"],
-            covariance=snap["covariance"],
+            field=snap["field"],
+            noise=snap["noise"],
+            centre=self.obs.centre,
+            radius=self.obs.radius,
             log_prob=float(best_lp[c_best]),
             trace=trace,
             n_features_trace=n_feat,
@@ -639,8 +685,8 @@ class _Run:
         return {
             "states": states,
             "features": self.F[c][:, keep].clone(),
-            "mean": self.mean[c, keep].clone(),
-            "covariance": self.cov[c, keep].clone(),
+            "field": self.field[c, keep].clone(),
+            "noise": self.noise[c, keep].clone(),
             "hyper": {
                 "feature_mass": float(self.mass[c]),
                 "transition_concentration": float(self.alpha[c]),

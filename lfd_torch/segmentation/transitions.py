@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from lfd_torch.segmentation.emissions import sample_gamma
+from lfd_torch.gmm import sample_gamma
 
 __all__ = [
     "prior_shape",
@@ -27,6 +27,8 @@ __all__ = [
     "transition_counts",
     "sample_transition_weights_posterior",
     "dirichlet_log_density_rows",
+    "expand_min_duration",
+    "free_transitions",
 ]
 
 
@@ -71,19 +73,22 @@ def initial_distribution(features: Tensor, dtype: torch.dtype) -> Tensor:
     return f / f.sum(-1, keepdim=True).clamp_min(1.0)
 
 
-def transition_counts(states: Tensor, lengths: Tensor, n_features: int) -> Tensor:
+def transition_counts(states: Tensor, lengths: Tensor, n_features: int, free: Tensor | None = None) -> Tensor:
     """n_jk: number of j -> k transitions in each sequence.
 
     Args:
         states: (..., T) long labels (padding arbitrary in 0..K-1).
         lengths: (...) valid samples per sequence.
         n_features: K.
+        free: (..., T - 1) bool, the transitions t-1 -> t drawn from pi (:func:`free_transitions`); None: all.
 
     Returns:
         (..., K, K) counts in the dtype float64.
     """
     T = states.shape[-1]
     valid = torch.arange(1, T, device=states.device) < lengths.unsqueeze(-1)  # transition t-1 -> t valid
+    if free is not None:
+        valid = valid & free
     pair = states[..., :-1] * n_features + states[..., 1:]
     counts = torch.zeros(*states.shape[:-1], n_features * n_features, dtype=torch.float64, device=states.device)
     counts.scatter_add_(-1, pair, valid.to(torch.float64))
@@ -139,3 +144,41 @@ def dirichlet_log_density_rows(pi: Tensor, features: Tensor, alpha: float, kappa
     row = torch.lgamma(a.sum(-1).clamp_min(1e-300)) - torch.where(block > 0, torch.lgamma(a.clamp_min(1e-300)), torch.zeros_like(a)).sum(-1)
     row = row + ((a - 1.0) * log_pi * block).sum(-1)
     return (row * f).sum(-1)
+
+
+def expand_min_duration(initial: Tensor, transition: Tensor, min_duration: int) -> tuple[Tensor, Tensor]:
+    """Initial distribution and transitions of the HMM whose states last at least ``min_duration`` samples.
+
+    Every state k becomes a chain of D = ``min_duration`` phases (k, 0) -> (k, 1) -> ... -> (k, D - 1), index
+    k D + r; the first D - 1 moves are forced, and from the last phase the chain follows pi: it stays with pi_kk
+    or enters (j, 0) with pi_kj. This is the explicit-duration (semi-Markov) HMM with duration D - 1 + Geometric,
+    so a run of a state is never shorter than D samples, except a run cut by the end of the sequence.
+    Emissions of all phases of k are those of k (``log_emission.repeat_interleave(D, -1)``).
+
+    Args:
+        initial: (..., K).
+        transition: (..., K, K) row-stochastic on the usable states.
+        min_duration: D >= 1 (1 returns the inputs).
+
+    Returns:
+        (..., K D) initial and (..., K D, K D) transition.
+    """
+    D = int(min_duration)
+    if D <= 1:
+        return initial, transition
+    K = transition.shape[-1]
+    lead = transition.shape[:-2]
+    P = transition.new_zeros(*lead, K, D, K, D)
+    eye = torch.eye(K, dtype=transition.dtype, device=transition.device)
+    for r in range(D - 1):
+        P[..., :, r, :, r + 1] = eye
+    P[..., :, D - 1, :, 0] = transition * (1.0 - eye)
+    P[..., :, D - 1, :, D - 1] = transition * eye
+    init = initial.new_zeros(*lead, K, D)
+    init[..., 0] = initial
+    return init.reshape(*lead, K * D), P.reshape(*lead, K * D, K * D)
+
+
+def free_transitions(phases: Tensor, min_duration: int) -> Tensor:
+    """(..., T - 1) bool: transition t-1 -> t was drawn from pi (the phase at t-1 is the last, D - 1)."""
+    return phases[..., :-1] == int(min_duration) - 1

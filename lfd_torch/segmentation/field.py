@@ -1,0 +1,278 @@
+"""Direction-field emission of the BP-GM-HMM: each state is an affine field of motion directions over positions.
+
+Notation:
+    d  state dimension, p = d + 1 regressor dimension
+    x  (..., d) positions, standardised: x~ = (x - centre) / radius (radius = RMS distance to the centre)
+    z  (..., p) regressor [x~, 1]
+    u  (..., d) unit direction of motion v / ||v||
+    w  (...,) direction reliability in (0, 1]: s^2 / (s^2 + s0^2), s = ||v|| the speed, s0 the rest speed
+    B  (..., K, d, p) field of state k: E[u | x, k] = B_k z
+    Psi (..., K, d, d) direction noise covariance at full reliability: u | x, k ~ N(B_k z, Psi_k / w)
+    MNIW(M0, V0, nu0, S0): Psi ~ IW(nu0, S0), B | Psi ~ MN(M0, Psi, V0)
+
+Why this emission (the paper leaves "x_t" open, NOTES.md sec. 2). A Gaussian on the position alone cannot be
+the step model: along a uniformly traversed straight leg, splitting one state into two halves multiplies the
+density of every sample by about 2, so the likelihood gains n log 2 nats for n samples and the posterior always
+prefers more states on longer legs; it also cannot tell an out-and-back leg, or two steps that pass through one
+region, apart. What changes at a step boundary is the direction of motion as a function of where the robot is:
+a step is a piece of path that one stable primitive ("a smooth vector field") reproduces. So the emission of state
+k is the conditional density of the unit direction given the position under an affine field,
+
+    p(u_t | x_t, s_t = k) = N(u_t; B_k [x~_t, 1], Psi_k / w_t).
+
+A straight leg has a constant field (B_k = [0, u]); a circular arc has u = R (x - c) / r, exactly affine; a corner,
+a reversal or a cusp needs two fields, because an affine field is continuous in x. A long leg is not split: a
+second state gains nothing once the first explains the directions. The positions are the covariates (they carry
+the spatial identification the paper asks of the Gaussian emission: a field is anchored in space through its
+offset and slope); they are not themselves modelled, so the position density of a step is taken from the step's
+samples afterwards (subtask spaces, :mod:`.segmentation`).
+
+Robustness: the emission is the Student t with ``dof`` = nu (a Gaussian scale mixture, u ~ N(B z, Psi / (w
+lambda)), lambda ~ Gamma(nu / 2, nu / 2)), because a few directions are not those of any field: the chord across
+a corner, a direction measured at rest whose noise is not small. Under a Gaussian those would be paid for by a
+state of their own; under the t they cost about log of their distance. The conditional draw of the parameters
+samples lambda_t | state, residual ~ Gamma((nu + d) / 2, (nu + w r^T Psi^-1 r) / 2) and then uses the Gaussian
+update with weights w_t lambda_t (data augmentation; the lambda are discarded after the update).
+
+The reliability weight w_t accounts for the direction of a slow motion being noisy: for a velocity v = s u + e
+with isotropic noise e of scale sigma_v per axis, the direction error scales like sigma_v / s, so the direction
+noise covariance is Psi / w with w = s^2 / (s^2 + s0^2); the true squared speed s^2 is estimated without the bias
+of the noise, ||v||^2 - d sigma_v^2 (clamped at 0). A sample at rest (w -> 0) carries no direction information, and its state is
+then decided by its neighbours (the sticky transitions), which is what one expects of a pause at a corner.
+With s0 = sigma_v / sigma_u (sigma_v the velocity noise per axis, sigma_u = ``direction_noise``) and
+Psi = sigma_u^2 I, Psi / w = sigma_u^2 I + sigma_v^2 / s^2 I: the tolerance of the field plus the propagated
+velocity noise (:func:`lfd_torch.segmentation.segment` estimates sigma_v from the data).
+
+Conjugate prior (Matrix-Normal-Inverse-Wishart; Minka 2000, "Bayesian linear regression"): with weighted statistics
+Szz = sum_t w_t z_t z_t^T, Suz = sum_t w_t u_t z_t^T, Suu = sum_t w_t u_t u_t^T and n = number of samples,
+
+    V_n^-1 = V0^-1 + Szz,   M_n = (M0 V0^-1 + Suz) V_n,   nu_n = nu0 + n,
+    S_n = S0 + Suu + M0 V0^-1 M0^T - M_n V_n^-1 M_n^T.
+
+The prior is set on the standardised scale: M0 = 0; E[Psi] = ``direction_noise``^2 I; V0 = diag(1, ..., 1, 1) /
+``direction_noise``^2, so that a priori the slope entries have a standard deviation of about 1 (a field may turn the
+direction by about a radian per radius of the data, i.e. curvature radii down to the data's own size) and the
+offset about 1 (a unit direction).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
+from lfd_torch.gmm import NIWPrior, inverse_wishart_log_density, sample_niw
+from lfd_torch.gmm.gaussian import LOG_2PI
+
+__all__ = ["FieldPrior", "FieldObservations", "field_observations", "field_prior", "field_statistics",
+           "field_posterior", "sample_field", "field_log_density", "field_log_likelihood"]
+
+
+
+@dataclass(frozen=True, eq=False)
+class FieldPrior:
+    """MNIW parameters; fields may carry leading batch dimensions (...).
+
+    Attributes:
+        mean: (..., d, p) M.
+        row_covariance: (..., p, p) V (the column covariance of B given Psi, in the regressor space).
+        dof: (...,) nu.
+        scale: (..., d, d) S.
+    """
+
+    mean: Tensor
+    row_covariance: Tensor
+    dof: Tensor
+    scale: Tensor
+
+
+@dataclass(frozen=True, eq=False)
+class FieldObservations:
+    """What the emission sees of a batch of padded sequences.
+
+    Attributes:
+        z: (N, T, p) regressors [x~, 1].
+        u: (N, T, d) unit directions.
+        w: (N, T) reliabilities (0 on padding).
+        centre: (d,) and radius: () of the standardisation.
+    """
+
+    z: Tensor
+    u: Tensor
+    w: Tensor
+    centre: Tensor
+    radius: Tensor
+
+
+def field_observations(
+    x: Tensor, v: Tensor, valid: Tensor, *, velocity_noise: Tensor | float = 0.0, direction_noise: float = 0.2,
+    speed_floor: float = 0.0, centre: Tensor | None = None, radius: Tensor | None = None,
+) -> FieldObservations:
+    """Regressors, unit directions and reliabilities of padded sequences.
+
+    Args:
+        x: (N, T, d) positions.
+        v: (N, T, d) velocities.
+        valid: (N, T) bool, False on padding.
+        velocity_noise: sigma_v, standard deviation of the velocity noise per axis, a number or one per sequence
+            (N,), >= 0 (unit of v).
+        direction_noise: sigma_u of the fields (the prior's expected direction noise).
+        speed_floor: s0 is at least this (unit of v): for noise-free data, a direction at rest is still unreliable.
+        centre, radius: the standardisation (None: from the valid samples of x).
+
+    Returns:
+        FieldObservations.
+    """
+    if x.shape != v.shape or x.shape[:2] != valid.shape:
+        raise ShapeMismatchError(f"x {tuple(x.shape)}, v {tuple(v.shape)}, valid {tuple(valid.shape)} differ")
+    sv = torch.as_tensor(velocity_noise, dtype=x.dtype, device=x.device)
+    if sv.ndim > 1 or (sv.ndim == 1 and sv.shape[0] != x.shape[0]) or not bool((sv >= 0).all()):
+        raise InvalidArgumentError(f"velocity_noise must be >= 0, a number or one per sequence, got {velocity_noise!r}")
+    if not direction_noise > 0:
+        raise InvalidArgumentError(f"direction_noise must be > 0, got {direction_noise!r}")
+    sv = sv.reshape(-1, 1) if sv.ndim == 1 else sv
+    s0 = (sv / direction_noise).clamp_min(speed_floor)
+    pts = x[valid]
+    if centre is None:
+        centre = pts.mean(0)
+    if radius is None:
+        radius = ((pts - centre).square().sum(-1).mean()).sqrt().clamp_min(torch.finfo(x.dtype).tiny)
+    xs = (x - centre) / radius
+    z = torch.cat([xs, torch.ones_like(xs[..., :1])], -1)
+    speed = v.norm(dim=-1)
+    u = v / speed.clamp_min(torch.finfo(x.dtype).tiny).unsqueeze(-1)
+    d = x.shape[-1]
+    signal = (speed.square() - d * sv.square()).clamp_min(0.0)  # E[s^2] = s_true^2 + d sigma_v^2
+    w = signal / (signal + s0.square()).clamp_min(torch.finfo(x.dtype).tiny)
+    w = torch.where(valid, w.clamp_min(1e-8), torch.zeros_like(w))
+    u = torch.where(valid.unsqueeze(-1), u, torch.zeros_like(u))
+    return FieldObservations(z=z, u=u, w=w, centre=centre, radius=radius)
+
+
+def field_prior(dim: int, *, direction_noise: float = 0.2, extra_dof: float = 2.0,
+                dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> FieldPrior:
+    """The weakly informative MNIW prior of the module docstring, on the standardised scale.
+
+    Args:
+        dim: d.
+        direction_noise: prior expected standard deviation of the direction noise (unit vectors; radians for small
+            errors).
+        extra_dof: nu0 - d - 1 (> 0): the weight of that expectation.
+    """
+    if not (direction_noise > 0 and extra_dof > 0):
+        raise InvalidArgumentError("direction_noise and extra_dof must be > 0")
+    p = dim + 1
+    dof = dim + 1.0 + extra_dof
+    return FieldPrior(
+        mean=torch.zeros(dim, p, dtype=dtype, device=device),
+        row_covariance=torch.eye(p, dtype=dtype, device=device) / direction_noise**2,
+        dof=torch.tensor(dof, dtype=dtype, device=device),
+        scale=torch.eye(dim, dtype=dtype, device=device) * direction_noise**2 * (dof - dim - 1.0),
+    )
+
+
+def field_statistics(obs_z: Tensor, obs_u: Tensor, obs_w: Tensor, weights: Tensor) -> tuple[Tensor, ...]:
+    """Sufficient statistics per state.
+
+    Args:
+        obs_z: (..., n, p), obs_u: (..., n, d), obs_w: (..., n) reliabilities.
+        weights: (..., n, K) state responsibilities (one-hot for hard labels, 0 on padding).
+
+    Returns:
+        counts (..., K), Szz (..., K, p, p), Suz (..., K, d, p), Suu (..., K, d, d).
+    """
+    counts = weights.sum(-2)
+    ww = weights * obs_w.unsqueeze(-1)
+    szz = torch.einsum("...nk,...ni,...nj->...kij", ww, obs_z, obs_z)
+    suz = torch.einsum("...nk,...ni,...nj->...kij", ww, obs_u, obs_z)
+    suu = torch.einsum("...nk,...ni,...nj->...kij", ww, obs_u, obs_u)
+    return counts, szz, suz, suu
+
+
+def field_posterior(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor) -> FieldPrior:
+    """Conjugate MNIW update (module docstring); batch shape (..., K)."""
+    v0_inv = torch.linalg.inv(prior.row_covariance)
+    prec_n = v0_inv + szz
+    prec_n = 0.5 * (prec_n + prec_n.transpose(-1, -2))
+    chol = torch.linalg.cholesky(prec_n)
+    v_n = torch.cholesky_inverse(chol)
+    a = prior.mean @ v0_inv + suz  # (..., d, p)
+    m_n = a @ v_n
+    s_n = prior.scale + suu + prior.mean @ v0_inv @ prior.mean.transpose(-1, -2) - m_n @ a.transpose(-1, -2)
+    s_n = 0.5 * (s_n + s_n.transpose(-1, -2))
+    return FieldPrior(mean=m_n, row_covariance=0.5 * (v_n + v_n.transpose(-1, -2)), dof=prior.dof + counts,
+                      scale=s_n)
+
+
+def sample_field(params: FieldPrior, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    """Draw (B, Psi) from MNIW distributions of batch shape (...).
+
+    Psi ~ IW(nu, S) through :func:`lfd_torch.gmm.sample_niw` (its covariance draw), then
+    B = M + chol(Psi) G chol(V)^T with G standard normal.
+
+    Returns:
+        B (..., d, p), Psi (..., d, d).
+    """
+    d, p = params.mean.shape[-2:]
+    batch = torch.broadcast_shapes(params.mean.shape[:-2], params.scale.shape[:-2], params.dof.shape,
+                                   params.row_covariance.shape[:-2])
+    dt, dev = params.mean.dtype, params.mean.device
+    niw = NIWPrior(mean=torch.zeros(*batch, d, dtype=dt, device=dev), kappa=torch.ones(batch, dtype=dt, device=dev),
+                   dof=params.dof.expand(batch), scale=params.scale.expand(*batch, d, d))
+    _, psi = sample_niw(niw, generator)
+    g = torch.randn(*batch, d, p, generator=generator, dtype=dt, device=dev)
+    l_psi = torch.linalg.cholesky(psi)
+    l_v = torch.linalg.cholesky(params.row_covariance.expand(*batch, p, p))
+    b = params.mean.expand(*batch, d, p) + l_psi @ g @ l_v.transpose(-1, -2)
+    return b, psi
+
+
+def field_log_density(b: Tensor, psi: Tensor, params: FieldPrior) -> Tensor:
+    """log MNIW(B, Psi | params), batched over (...)."""
+    d, p = b.shape[-2:]
+    l_psi = torch.linalg.cholesky(psi)
+    logdet_psi = 2.0 * torch.log(torch.diagonal(l_psi, dim1=-2, dim2=-1)).sum(-1)
+    log_iw = inverse_wishart_log_density(psi, params.dof, params.scale)
+    l_v = torch.linalg.cholesky(params.row_covariance)
+    logdet_v = 2.0 * torch.log(torch.diagonal(l_v, dim1=-2, dim2=-1)).sum(-1)
+    diff = b - params.mean  # (..., d, p)
+    y = torch.linalg.solve_triangular(l_psi, diff, upper=False)  # Psi^-1/2 diff
+    y = torch.linalg.solve_triangular(l_v.expand(*y.shape[:-2], p, p), y.transpose(-1, -2), upper=False)
+    log_mn = -0.5 * d * p * LOG_2PI - 0.5 * p * logdet_psi - 0.5 * d * logdet_v - 0.5 * y.square().sum((-1, -2))
+    return log_iw + log_mn
+
+
+def field_log_likelihood(
+    z: Tensor, u: Tensor, w: Tensor, b: Tensor, psi: Tensor, dof: float | None = None, *, maha_out: bool = False
+) -> Tensor | tuple[Tensor, Tensor]:
+    """log t_nu(u_t; B_k z_t, Psi_k / w_t) (Student t; Gaussian with ``dof=None``) of every sample and state.
+
+    Args:
+        z: (..., n, p), u: (..., n, d), w: (..., n) (> 0 where the value is used).
+        b: (..., K, d, p), psi: (..., K, d, d).
+        dof: nu of the Student t; None for the Gaussian N(u_t; B_k z_t, Psi_k / w_t).
+        maha_out: also return the squared Mahalanobis distances w_t r^T Psi_k^-1 r, (..., n, K).
+
+    Returns:
+        (..., n, K) log densities (and the distances).
+    """
+    d = u.shape[-1]
+    pred = torch.einsum("...kij,...nj->...nki", b, z)  # (..., n, K, d)
+    r = u.unsqueeze(-2) - pred
+    l_psi = torch.linalg.cholesky(psi)  # (..., K, d, d)
+    prec = torch.cholesky_inverse(l_psi)
+    maha = torch.einsum("...nki,...kij,...nkj->...nk", r, prec, r)
+    half_logdet = torch.log(torch.diagonal(l_psi, dim1=-2, dim2=-1)).sum(-1)  # (..., K)
+    wc = w.clamp_min(1e-8).unsqueeze(-1)
+    q = wc * maha
+    base = 0.5 * d * torch.log(wc) - half_logdet.unsqueeze(-2)
+    if dof is None:
+        out = base - 0.5 * d * LOG_2PI - 0.5 * q
+    else:
+        nu = float(dof)
+        const = math.lgamma(0.5 * (nu + d)) - math.lgamma(0.5 * nu) - 0.5 * d * math.log(nu * math.pi)
+        out = base + const - 0.5 * (nu + d) * torch.log1p(q / nu)
+    return (out, q) if maha_out else out
