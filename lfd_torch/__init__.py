@@ -12,4 +12,4 @@ try:
 except PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.0.0+unknown"
 
-__all__ = ["__version__", "data", "ds", "errors", "gmm", "metrics", "modulation", "preprocess", "rollout", "segmentation", "store", "utils", "viz"]
+__all__ = ["__version__", "data", "ds", "errors", "gmm", "metrics", "modulation", "preprocess", "rollout", "segmentation", "skills", "store", "utils", "viz"]

@@ -83,6 +83,7 @@ DEFAULT_VELOCITY_TOL = 1e-3
 
 Field = Callable[[Tensor], Tensor]
 Hook = Callable[[int, Tensor, Tensor], "Tensor | None"]
+StopGate = Callable[[int], Tensor]
 
 
 class IntegrationMethod(str, Enum):
@@ -317,6 +318,8 @@ def rollout(
     position_tol: float | None = None,
     velocity_tol: float | None = None,
     hook: Hook | None = None,
+    can_stop: StopGate | None = None,
+    hook_until: int | None = None,
     disturbances: Iterable[Disturbance] | Disturbance | None = None,
     check_every: int = 32,
     compact_below: float = 0.5,
@@ -345,6 +348,13 @@ def rollout(
             disturbances) with the full (B, d) state (a copy) and (B,) bool of rows not stopped; it may return a
             (B, d) displaced state. Rows whose state it changes are reactivated. A hook keeps every row in the
             working set (no compaction, no early finish).
+        can_stop: optional per-row gate of the stopping rule, ``can_stop(k) -> (B,) bool``, called at every sample
+            k after the hook: only rows where it is True may stop at k (e.g. a multi-step task whose rows stop at
+            the final attractor only once they are in the last step). Only valid with a ``hook``, which holds the
+            per-row state the gate reads (and keeps every row in the working set).
+        hook_until: the last sample at which the hook may displace a state. Without it a rollout with a hook runs
+            all ``n_steps``; with it, the run ends early once every row has stopped after that sample (the hook is
+            then not called for the remaining, frozen samples).
         disturbances: :class:`Disturbance` specs (position pushes or extra velocities at given samples).
         check_every: host synchronisation period in steps: stopped rows are dropped from the working set, the run
             ends once every row has stopped (and no disturbance is pending), and the new samples are checked for
@@ -400,6 +410,10 @@ def rollout(
         raise InvalidArgumentError(f"compact_below must lie in [0, 1], got {compact_below}")
     if hook is not None and not callable(hook):
         raise InvalidArgumentError(f"hook must be callable, got {type(hook).__name__}")
+    if can_stop is not None and (hook is None or not callable(can_stop)):
+        raise InvalidArgumentError("can_stop must be a callable and needs a hook (which holds the per-row state)")
+    if hook_until is not None and (hook is None or isinstance(hook_until, bool) or not isinstance(hook_until, (int, np.integer))):
+        raise InvalidArgumentError(f"hook_until must be an int and needs a hook, got {hook_until!r}")
 
     g: Tensor | None = None
     if attractor is None:
@@ -424,8 +438,8 @@ def rollout(
     ctx = contextlib.nullcontext() if grad else torch.no_grad()
     with ctx:
         positions, velocities, stop = _integrate(
-            field, x0 if grad else x0.detach(), dt, n_steps, method, g, p_tol, v_tol, hook, plan,
-            int(check_every), float(compact_below), grad,
+            field, x0 if grad else x0.detach(), dt, n_steps, method, g, p_tol, v_tol, hook, can_stop, hook_until,
+            plan, int(check_every), float(compact_below), grad,
         )
     T = n_steps + 1
     converged = stop < T
@@ -453,6 +467,8 @@ def _integrate(
     p_tol: float,
     v_tol: float,
     hook: Hook | None,
+    can_stop: StopGate | None,
+    hook_until: int | None,
     plan: dict[int, _Kick],
     check_every: int,
     compact_below: float,
@@ -599,6 +615,11 @@ def _integrate(
             crit = (e * e).sum(0) < p_tol2
             crit &= (vt * vt).sum(0) < v_tol2
             crit &= act  # rows that stop at this sample
+            if can_stop is not None:
+                gate = can_stop(k)
+                if not isinstance(gate, Tensor) or gate.shape != (B,) or gate.dtype != torch.bool:
+                    raise ShapeMismatchError(f"can_stop({k}) must return a ({B},) bool tensor")
+                crit &= gate.to(device)
             stop.masked_fill_(crit, k)
             act = act ^ crit
         if k == n_steps:
@@ -620,14 +641,17 @@ def _integrate(
         if k - last_check >= check_every:
             check_finite(k)
             last_check = k
-            if not (stopping and compactable):
+            if not stopping or grad:
                 continue
             n_w = xt.shape[1]
             n_act = int(act.sum())
-            if n_act == 0 and not any(s >= k for s in kick_steps):
+            hook_done = hook is None or (hook_until is not None and k > hook_until)
+            if n_act == 0 and hook_done and not any(s >= k for s in kick_steps):
                 fill_tail(k, idx, xt)
                 last_check = T
                 break
+            if not compactable:
+                continue
             if n_act < compact_below * n_w:
                 gone = torch.nonzero(~act).reshape(-1)
                 keep = torch.nonzero(act).reshape(-1)

@@ -1,0 +1,360 @@
+"""Skill decision engine: which step, which modulation branch, what velocity (paper Sec. IV, Fig. 3).
+
+State of a robot: its position x and its progress (route r, index j into the route's step list); the active step is
+m = routes[r][j]. A tick
+
+  1. picks the route once, at the first tick: the route whose first subtask space is the most likely at x;
+  2. completes steps: while ||x - g_m|| < r_a (the arrival ball, :mod:`~lfd_torch.skills.arrival`), j advances;
+     after the last step of the route the task is done (velocity 0);
+  3. chooses the branch: x in A_m (log p(x|A_m) >= log p(x|A_m-)) -> the primitive with the small-scale
+     modulation, else the large-scale recovery (what each branch does in mode ``none``/``large``/``small``/``full``
+     is in :mod:`lfd_torch.modulation.policy`);
+  4. returns u = alpha(x) M(x) f_m(x) (speed band of :mod:`~lfd_torch.skills.arrival`).
+
+The behaviour tree of :mod:`~lfd_torch.skills.tree` is the source of these decisions for a single state
+(:meth:`SkillEngine.tick`); :meth:`SkillEngine.decide` is its vectorised equivalent for B states, which a test checks
+decision for decision against the py_trees tick. :meth:`SkillEngine.rollout` integrates B robots with
+:func:`lfd_torch.rollout.rollout` (its hook holds the per-row progress, ``can_stop`` lets a row stop only when its
+task is done) and returns the active step and the branch of every sample.
+
+Notation: B robots, d state dimension, M steps, R routes, L longest route; T = n_steps + 1 samples.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor
+
+from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError
+from lfd_torch.modulation import Branch, Modulation, modulated_velocity, renyi_entropy
+from lfd_torch.modulation.matrix import goal_direction
+from lfd_torch.rollout import Disturbance, RolloutResult, rollout
+from lfd_torch.skills.arrival import Arrival, speed_band
+from lfd_torch.skills.library import SkillLibrary
+
+__all__ = ["Decision", "EngineRollout", "SkillEngine", "TickResult"]
+
+
+class Decision(NamedTuple):
+    """Decisions of a tick for B states (all (B,) tensors).
+
+    Attributes:
+        route: long, chosen route.
+        index: long, position of the active step in the route (= route length when done).
+        step: long, active step m (the route's last step when done).
+        done: bool, the whole task is complete.
+        inside: bool, x in A_m (False where done).
+    """
+
+    route: Tensor
+    index: Tensor
+    step: Tensor
+    done: Tensor
+    inside: Tensor
+
+
+class TickResult(NamedTuple):
+    """One single-state tick through the behaviour tree.
+
+    Attributes:
+        velocity: (d,) commanded velocity (units/s).
+        route: chosen route.
+        index: position of the active step in the route (route length when done).
+        step: active step m (None when done).
+        branch: modulation branch taken.
+        done: the task is complete.
+        decisions: ``(behaviour name, status name)`` of every behaviour ticked, in tick order (the visitor's log).
+    """
+
+    velocity: Tensor
+    route: int
+    index: int
+    step: int | None
+    branch: Branch
+    done: bool
+    decisions: tuple[tuple[str, str], ...]
+
+
+@dataclass(frozen=True, eq=False)
+class EngineRollout:
+    """Result of :meth:`SkillEngine.rollout`.
+
+    Attributes:
+        result: the :class:`~lfd_torch.rollout.RolloutResult` (positions, velocities, lengths, converged = task done).
+        steps: (B, T) long active step of every sample (frozen samples repeat the last one).
+        branches: (B, T) int8 :class:`~lfd_torch.modulation.Branch` of every sample (AT_GOAL once done).
+        routes: (B,) long route of every row.
+        done: (B,) bool, every step completed (same as ``result.converged``).
+        pushes: log of the pushes applied (``PushPlan.log``), empty without pushes.
+    """
+
+    result: RolloutResult
+    steps: Tensor
+    branches: Tensor
+    routes: Tensor
+    done: Tensor
+    pushes: tuple[dict[str, Any], ...] = ()
+
+
+class SkillEngine:
+    """Decision engine over a :class:`~lfd_torch.skills.SkillLibrary` (module docstring).
+
+    Args:
+        library: the skills, their segmentation (routes, subtask spaces) and thresholds.
+        modulation: a :class:`~lfd_torch.modulation.Modulation` or its mode name (``none``, ``large``, ``small``,
+            ``full``).
+        arrival: step completion ball and speed band (:class:`~lfd_torch.skills.arrival.Arrival`).
+
+    Attributes:
+        tree: the py_trees behaviour tree (:class:`~lfd_torch.skills.tree.SkillTree`).
+        arrival_radius: r_a in data units.
+    """
+
+    def __init__(self, library: SkillLibrary, modulation: Modulation | str = "full", arrival: Arrival | None = None):
+        if not isinstance(library, SkillLibrary):
+            raise InvalidArgumentError(f"library must be a SkillLibrary, got {type(library).__name__}")
+        self.library = library
+        self.modulation = modulation if isinstance(modulation, Modulation) else Modulation(mode=modulation)
+        self.arrival = arrival if arrival is not None else Arrival()
+        if not isinstance(self.arrival, Arrival):
+            raise InvalidArgumentError(f"arrival must be an Arrival, got {type(self.arrival).__name__}")
+        f = {"dtype": library.dtype, "device": library.device}
+        self._f = f
+        self.segmentation = library.segmentation
+        routes = [tuple(r) for r in library.routes]
+        if not routes or any(len(r) == 0 for r in routes):
+            raise InvalidArgumentError("the library's segmentation has an empty route")
+        self.routes = tuple(routes)
+        L = max(len(r) for r in routes)
+        self._route_steps = torch.tensor([list(r) + [r[-1]] * (L - len(r)) for r in routes], device=f["device"])
+        self._route_len = torch.tensor([len(r) for r in routes], device=f["device"])
+        self._first = self._route_steps[:, 0]
+        self.goals = library.attractors.to(**f)  # (M, d)
+        span = library.span
+        self.arrival_radius = self.arrival.radius * span
+        self._slow_radius = self.arrival.slow_radius * span
+        self._v_lo = torch.tensor([self.arrival.min_speed * s.speed for s in library.skills], **f)
+        self._v_hi = torch.tensor([self.arrival.max_speed * s.speed for s in library.skills], **f)
+        self._h2_ref = torch.stack([s.h2_ref.to(**f) for s in library.skills])
+        finals = self.goals[self._route_steps[torch.arange(len(routes)), self._route_len - 1]]
+        if not torch.allclose(finals, finals[:1].expand_as(finals)):
+            raise InvalidArgumentError("the routes end at different attractors; one task has one final attractor")
+        self.final_attractor = finals[0]
+        from lfd_torch.skills.tree import SkillTree
+
+        self.tree = SkillTree(self)
+
+    # ------------------------------------------------------------------ building blocks
+    @property
+    def dim(self) -> int:
+        return self.library.dim
+
+    def _check_x(self, x: Tensor, name: str = "x") -> Tensor:
+        if not isinstance(x, Tensor) or not x.is_floating_point():
+            raise ShapeMismatchError(f"{name} must be a floating-point tensor, got {type(x).__name__}")
+        if x.ndim != 2 or x.shape[-1] != self.dim:
+            raise ShapeMismatchError(f"{name} must have shape (B, {self.dim}), got {tuple(x.shape)}")
+        if not bool(torch.isfinite(x).all()):
+            raise NonFiniteError(f"{name} contains NaN or Inf")
+        return x.to(**self._f)
+
+    def own_other(self, x: Tensor, step: Tensor) -> tuple[Tensor, Tensor]:
+        """log p(x|A_m) and log p(x|A_m-) of the given steps: (B,) each, from one density evaluation."""
+        ld = self.segmentation.log_density(x)  # (B, M)
+        own = ld.gather(-1, step.unsqueeze(-1)).squeeze(-1)
+        other = ld.scatter(-1, step.unsqueeze(-1), -math.inf).amax(-1) if ld.shape[-1] > 1 else torch.full_like(own, -math.inf)
+        return own, other
+
+    def choose_route(self, x: Tensor) -> Tensor:
+        """(B,) route whose first subtask space is the most likely at x (the first such route on ties)."""
+        if len(self.routes) == 1:
+            return torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
+        ld = self.segmentation.log_density(x)[:, self._first]  # (B, R)
+        return ld.argmax(-1)
+
+    def reached(self, x: Tensor, step: Tensor) -> Tensor:
+        """(B,) bool: ||x - g_m|| < r_a."""
+        e = x - self.goals[step]
+        return (e * e).sum(-1) < self.arrival_radius**2
+
+    def advance(self, x: Tensor, route: Tensor, index: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Route choice (rows with route < 0) and step completion; returns route, index, done (B,)."""
+        if bool((route < 0).any()):
+            route = torch.where(route < 0, self.choose_route(x), route)
+        length = self._route_len[route]
+        for _ in range(self._route_steps.shape[1]):
+            active = index < length
+            step = self._route_steps[route, torch.minimum(index, length - 1)]
+            hit = active & self.reached(x, step)
+            if not bool(hit.any()):
+                break
+            index = index + hit.long()
+        return route, index, index >= length
+
+    def active_step(self, route: Tensor, index: Tensor) -> Tensor:
+        """(B,) active step routes[route][index] (the last step once done)."""
+        length = self._route_len[route]
+        return self._route_steps[route, torch.minimum(index, length - 1)]
+
+    def decide(self, x: Tensor, route: Tensor | None = None, index: Tensor | None = None) -> Decision:
+        """Vectorised tick decisions for B states (the py_trees tick's equivalent; module docstring).
+
+        Args:
+            x: (B, d) positions.
+            route: (B,) long route, -1 (or None for all) where it is still to be chosen.
+            index: (B,) long progress in the route (None: 0).
+        """
+        x = self._check_x(x)
+        B = x.shape[0]
+        dev = x.device
+        route = torch.full((B,), -1, dtype=torch.long, device=dev) if route is None else route.to(dev).long()
+        index = torch.zeros(B, dtype=torch.long, device=dev) if index is None else index.to(dev).long()
+        route, index, done = self.advance(x, route, index)
+        step = self.active_step(route, index)
+        own, other = self.own_other(x, step)
+        return Decision(route, index, step, done, (own >= other) & ~done)
+
+    def velocity(
+        self, x: Tensor, step: Tensor, done: Tensor, inside: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """Commanded velocity and branch of B states in their active steps.
+
+        Args:
+            x: (B, d) positions.
+            step: (B,) long active steps.
+            done: (B,) bool rows whose task is complete (velocity 0, branch AT_GOAL).
+            inside: (B,) bool x in A_m, as decided by the tree; None evaluates it here.
+
+        Returns:
+            (B, d) velocities (units/s) and (B,) int8 branches.
+        """
+        mod = self.modulation
+        out = torch.zeros_like(x)
+        branch = torch.full(step.shape, int(Branch.AT_GOAL), dtype=torch.int8, device=x.device)
+        if mod.uses_subtask_densities:
+            own, other = self.own_other(x, step)
+            if inside is None:
+                inside = own >= other
+            other = torch.where(inside, torch.full_like(other, -math.inf), other)  # the tree's decision rules
+        else:
+            own = other = None
+        live = ~done
+        for m in torch.unique(step[live]).tolist():
+            rows = torch.nonzero(live & (step == m)).reshape(-1)
+            skill = self.library.skills[m]
+            xm = x.index_select(0, rows)
+            f = skill.primitive(xm)
+            h2 = renyi_entropy(skill.primitive, xm) if mod.uses_entropy else None
+            res = modulated_velocity(
+                xm, f, skill.attractor,
+                log_p_own=None if own is None else own[rows], log_p_other=None if other is None else other[rows],
+                h2=h2, h2_ref=self._h2_ref[m], mode=mod.mode, lambda_limit=mod.lambda_limit,
+                radial_floor=mod.radial_floor,
+            )  # fmt: skip
+            r = goal_direction(xm, skill.attractor).distance
+            u = speed_band(res.velocity, r, self._v_lo[m], self._v_hi[m], self._slow_radius)
+            out.index_copy_(0, rows, u)
+            branch.index_copy_(0, rows, res.branch)
+        return out, branch
+
+    # ------------------------------------------------------------------ public ticks
+    def tick(self, x: Tensor, step: int | None = None, route: int | None = None) -> TickResult:
+        """One control tick for a single state through the py_trees behaviour tree.
+
+        Args:
+            x: (d,) position.
+            step: the active step m of the robot (None: a new task, the tree picks the route).
+            route: its route (needed only when ``step`` belongs to several routes).
+        """
+        return self.tree.tick(x, step=step, route=route)
+
+    def step_batch(self, x: Tensor, route: Tensor | None = None, index: Tensor | None = None) -> tuple[Tensor, Decision, Tensor]:
+        """Batched tick for B robots: velocities (B, d), the decisions (new progress) and branches (B,)."""
+        dec = self.decide(x, route, index)
+        v, branch = self.velocity(x.to(**self._f), dec.step, dec.done, dec.inside)
+        return v, dec, branch
+
+    def rollout(
+        self,
+        x0: Tensor,
+        *,
+        dt: float,
+        n_steps: int,
+        method: str = "euler",
+        pushes: Any | None = None,
+        disturbances: Iterable[Disturbance] | Disturbance | None = None,
+    ) -> EngineRollout:
+        """Run B robots through the whole task from x0 with :func:`lfd_torch.rollout.rollout`.
+
+        A row stops when its task is done (inside the arrival ball of the final attractor); the per-row progress
+        lives in the rollout's hook, which also applies the state-dependent pushes of ``pushes``
+        (:class:`~lfd_torch.skills.disturbances.PushPlan`).
+
+        Args:
+            x0: (B, d) start states.
+            dt: time step (s).
+            n_steps: step budget.
+            method: ``euler`` or ``rk4``.
+            pushes: optional push plan (labelled large / small pushes, applied by the hook).
+            disturbances: optional open-loop :class:`~lfd_torch.rollout.Disturbance` specs.
+
+        Returns:
+            :class:`EngineRollout`.
+        """
+        x0 = self._check_x(x0, "x0")
+        B = x0.shape[0]
+        dev = x0.device
+        T = int(n_steps) + 1
+        route = torch.full((B,), -1, dtype=torch.long, device=dev)
+        index = torch.zeros(B, dtype=torch.long, device=dev)
+        state = {"route": route, "index": index, "done": torch.zeros(B, dtype=torch.bool, device=dev),
+                 "step": torch.zeros(B, dtype=torch.long, device=dev), "pending": None, "last": -1}  # fmt: skip
+        steps_log = torch.zeros((T, B), dtype=torch.long, device=dev)
+        branch_log = torch.full((T, B), int(Branch.AT_GOAL), dtype=torch.int8, device=dev)
+
+        def hook(k: int, x: Tensor, active: Tensor) -> Tensor | None:
+            y = None
+            if pushes is not None:
+                y = pushes.apply(k, x, self, state)
+            xs = x if y is None else y
+            r, j, done = self.advance(xs, state["route"], state["index"])
+            state.update(route=r, index=j, done=done, step=self.active_step(r, j), pending=k, last=k)
+            steps_log[k] = state["step"]
+            return y
+
+        def field(x: Tensor) -> Tensor:
+            v, br = self.velocity(x, state["step"], state["done"])
+            if state["pending"] is not None:
+                branch_log[state["pending"]] = br
+                state["pending"] = None
+            return v
+
+        res = rollout(
+            field, x0, dt, n_steps, method=method, attractor=self.final_attractor, position_tol=self.arrival_radius,
+            velocity_tol=math.inf, hook=hook, can_stop=lambda k: state["done"],
+            hook_until=-1 if pushes is None else int(pushes.last_step), disturbances=disturbances,
+        )  # fmt: skip
+        last = state["last"]
+        if last + 1 < T:  # the run ended early: every row is frozen in its final state
+            steps_log[last + 1 :] = steps_log[last]
+            branch_log[last + 1 :] = int(Branch.AT_GOAL)
+        log = tuple(pushes.log) if pushes is not None else ()
+        return EngineRollout(res, steps_log.T.contiguous(), branch_log.T.contiguous(), state["route"], res.converged, log)
+
+    def replay_large_share(self) -> list[float]:
+        """Share of each step's own training states on which the large-scale branch fires (mode ``full``).
+
+        Each state is ticked as a robot in that step (issue item: subtask spaces that hold their own data).
+        """
+        shares = []
+        for s in self.library.skills:
+            x = s.train_positions.to(**self._f)
+            step = torch.full((x.shape[0],), s.step, dtype=torch.long, device=x.device)
+            own, other = self.own_other(x, step)
+            shares.append(float((own < other).double().mean()))
+        return shares

@@ -1,0 +1,372 @@
+"""Skill library: one certified primitive per step of a segmentation (paper Sec. III-B/C, Table I).
+
+A skill m holds the stable primitive learned on the pieces of step m (``Segmentation.split(end_at_attractor=True)``,
+attractor g_m), the step's training positions, its median demonstrated speed, and the entropy threshold H2(x_r)
+of the small-scale modulation computed at fit time (NOTES sec. 4: by default the largest H2 over the step's
+training states; a quantile, or the paper's literal x_r = g_m, by ``entropy_quantile``). The subtask space A_m
+stays in the segmentation (``Segmentation.log_density`` / ``other_log_density``), which the library carries.
+
+Persistence: ``save(dir)`` writes ``segmentation.pt``, one ``step_{m}.pt`` per primitive, ``skills.pt`` (training
+positions, thresholds) and last ``manifest.json`` (schema, step order, routes, thresholds, the stability report of
+:mod:`~lfd_torch.skills.stability`, the SHA-256 of every file). Each file is written atomically; the manifest
+goes last, so a directory whose manifest is readable is complete. ``load(dir)`` checks the schema and every
+checksum and raises :class:`~lfd_torch.errors.StoreError` naming the missing, truncated or foreign file.
+
+Notation: M steps, d state dimension, N_m training samples of step m; positions in data units (LASA: mm).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import json
+import math
+import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from lfd_torch.data import Demos
+from lfd_torch.ds import StablePrimitive, fit_lpvds, load_primitive
+from lfd_torch.errors import InvalidArgumentError, LfdError, ShapeMismatchError, StoreError
+from lfd_torch.modulation import reference_entropy
+from lfd_torch.segmentation import Segmentation
+from lfd_torch.store import atomic_path
+
+__all__ = ["LIBRARY_SCHEMA", "Skill", "SkillLibrary", "default_fitter"]
+
+LIBRARY_SCHEMA = 1
+_KIND = "lfd_torch.SkillLibrary"
+_MANIFEST = "manifest.json"
+
+Fitter = Callable[..., StablePrimitive]
+
+
+def default_fitter() -> Fitter:
+    """P-QLF LPV-DS on a PC-GMM (the paper's primitive), called as ``fit(demos, attractor, generator=g)``."""
+    from lfd_torch.gmm import PCGMMFitter
+
+    return functools.partial(fit_lpvds, gmm=PCGMMFitter(), lyapunov="pqlf")
+
+
+@dataclass(frozen=True, eq=False)
+class Skill:
+    """The primitive of one step.
+
+    Attributes:
+        step: step index m in the segmentation.
+        primitive: certified primitive with attractor g_m.
+        h2_ref: 0-d threshold H2(x_r) of the small-scale modulation.
+        train_positions: (N_m, d) positions of the step's training samples (without the appended g_m).
+        speed: median demonstrated speed of the step, units/s (used by the arrival rule of the engine).
+    """
+
+    step: int
+    primitive: StablePrimitive
+    h2_ref: Tensor
+    train_positions: Tensor
+    speed: float
+
+    @property
+    def attractor(self) -> Tensor:
+        """(d,) g_m."""
+        return self.primitive.attractor
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _step_pieces(pieces: Demos) -> tuple[Tensor, float]:
+    """Training positions (without the appended attractor sample) and median speed of one step's pieces."""
+    keep = pieces.mask.clone()
+    last = (pieces.lengths - 1).clamp_min(0)
+    keep[torch.arange(pieces.n_demos, device=keep.device), last] = False  # the appended g_m
+    x = pieces.positions[keep]
+    speed = torch.linalg.vector_norm(pieces.velocities[keep], dim=-1)
+    return x, float(speed.median()) if speed.numel() else 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class SkillLibrary:
+    """Skills of a task, with the segmentation that defines their steps, routes and subtask spaces.
+
+    Attributes:
+        segmentation: the segmentation (steps, attractors g_m, routes, subtask spaces A_m).
+        skills: M skills in step order (``skills[m].step == m``).
+        entropy_quantile: how the thresholds were chosen (quantile of H2 over the training states; None: x_r = g_m).
+        span: largest coordinate range of the training positions (data units); tolerances of the engine scale
+            with it.
+        stability: the stability report stored at learn time (:func:`~lfd_torch.skills.check_stability`), or None.
+        info: JSON-serialisable metadata (fit times, fitter name).
+    """
+
+    segmentation: Segmentation
+    skills: tuple[Skill, ...]
+    entropy_quantile: float | None = 1.0
+    span: float = 1.0
+    stability: dict[str, Any] | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        M = self.segmentation.n_steps
+        if len(self.skills) != M or any(s.step != m for m, s in enumerate(self.skills)):
+            raise ShapeMismatchError(f"a library needs one skill per step in step order (0..{M - 1})")
+        for s in self.skills:
+            if s.primitive.dim != self.segmentation.dim:
+                raise ShapeMismatchError(
+                    f"skill {s.step}: the primitive has dimension {s.primitive.dim}, the segmentation "
+                    f"{self.segmentation.dim}"
+                )
+        if not (math.isfinite(self.span) and self.span > 0):
+            raise InvalidArgumentError(f"span must be a positive number, got {self.span}")
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def n_steps(self) -> int:
+        return len(self.skills)
+
+    @property
+    def dim(self) -> int:
+        return self.segmentation.dim
+
+    @property
+    def routes(self) -> tuple[tuple[int, ...], ...]:
+        return self.segmentation.routes
+
+    @property
+    def attractors(self) -> Tensor:
+        """(M, d) g_m of the primitives."""
+        return torch.stack([s.attractor for s in self.skills])
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.skills[0].primitive.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.skills[0].primitive.device
+
+    # ------------------------------------------------------------------ learning
+    @classmethod
+    def learn(
+        cls,
+        demos: Demos,
+        segmentation: Segmentation,
+        *,
+        primitive: Fitter | None = None,
+        generator: torch.Generator,
+        entropy_quantile: float | None = 1.0,
+        reuse: Mapping[int, Skill | StablePrimitive] | None = None,
+        check: Mapping[str, Any] | bool = True,
+    ) -> SkillLibrary:
+        """Fit one primitive per step on ``segmentation.split(demos, end_at_attractor=True)``.
+
+        Args:
+            demos: the demonstrations that were segmented.
+            segmentation: their segmentation.
+            primitive: fitter ``fit(demos_m, g_m, generator=g) -> StablePrimitive`` (default
+                :func:`default_fitter`: P-QLF LPV-DS on a PC-GMM; SEDS, QLF or any other by config).
+            generator: source of randomness for the fitter (one draw per step, in step order).
+            entropy_quantile: threshold H2(x_r) = this quantile of H2 over the step's training states (1.0 = max);
+                None: the paper's literal x_r = g_m.
+            reuse: ``{m: skill or primitive}`` taken as the primitive of step m instead of fitting one (a skill
+                learned on another task); its attractor must equal g_m.
+            check: run :func:`~lfd_torch.skills.check_stability` on the new library (True: default settings; a
+                mapping: its keyword arguments; False: skip) and store the report.
+
+        Returns:
+            The library.
+
+        Raises:
+            ShapeMismatchError: demonstrations that are not the segmented ones; a reused primitive of another
+                dimension or attractor.
+            LfdError: whatever the fitter raises (SolverError, CertificationError, ...), with the step named.
+        """
+        if not isinstance(segmentation, Segmentation):
+            raise InvalidArgumentError(f"segmentation must be a Segmentation, got {type(segmentation).__name__}")
+        if not isinstance(generator, torch.Generator):
+            raise InvalidArgumentError(f"generator must be a torch.Generator, got {type(generator).__name__}")
+        fit = default_fitter() if primitive is None else primitive
+        if not callable(fit):
+            raise InvalidArgumentError(f"primitive must be a fitter callable, got {type(fit).__name__}")
+        reuse = dict(reuse or {})
+        pieces = segmentation.split(demos, end_at_attractor=True)
+        skills = []
+        fitted: list[int] = []
+        for m, part in enumerate(pieces):
+            g = segmentation.attractors[m].to(demos.positions)
+            if m in reuse:
+                prim = reuse[m].primitive if isinstance(reuse[m], Skill) else reuse[m]
+                if not isinstance(prim, StablePrimitive):
+                    raise InvalidArgumentError(f"reuse[{m}] is a {type(prim).__name__}, not a primitive or skill")
+                prim = prim.to(dtype=demos.dtype, device=demos.device)
+                if prim.dim != demos.dim or not torch.allclose(prim.attractor, g, rtol=1e-6, atol=1e-9):
+                    raise ShapeMismatchError(f"reuse[{m}]: its attractor {prim.attractor.tolist()} is not g_{m}")
+            else:
+                try:
+                    prim = fit(part, g, generator=generator)
+                except LfdError as exc:
+                    if _simple_init(exc):
+                        raise type(exc)(f"step {m}: {exc}") from exc
+                    raise
+                fitted.append(m)
+            x_m, speed = _step_pieces(part)
+            h2 = reference_entropy(prim, x_m, entropy_quantile)
+            skills.append(Skill(m, prim, h2.detach(), x_m.detach(), speed))
+        x_all = demos.samples()[0]
+        span = float((x_all.amax(0) - x_all.amin(0)).max())
+        lib = cls(segmentation, tuple(skills), entropy_quantile, span, None, {"fitted_steps": fitted})
+        if check:
+            from lfd_torch.skills.stability import check_stability
+
+            report = check_stability(lib, **(dict(check) if isinstance(check, Mapping) else {}))
+            lib = dataclasses.replace(lib, stability=report.to_dict())
+        return lib
+
+    def with_step(self, m: int, primitive: StablePrimitive) -> SkillLibrary:
+        """A new library whose step m uses ``primitive`` (attractor g_m); the other skills are shared, not refitted.
+
+        The threshold H2(x_r) of step m is recomputed for the new primitive; the stored stability report is
+        dropped (run :func:`~lfd_torch.skills.check_stability` again).
+        """
+        if isinstance(m, bool) or not isinstance(m, int) or not 0 <= m < self.n_steps:
+            raise InvalidArgumentError(f"m must be a step index in 0..{self.n_steps - 1}, got {m!r}")
+        if not isinstance(primitive, StablePrimitive):
+            raise InvalidArgumentError(f"primitive must be a StablePrimitive, got {type(primitive).__name__}")
+        old = self.skills[m]
+        prim = primitive.to(dtype=self.dtype, device=self.device)
+        if prim.dim != self.dim or not torch.allclose(prim.attractor, old.attractor, rtol=1e-6, atol=1e-9):
+            raise ShapeMismatchError(f"the primitive's attractor {prim.attractor.tolist()} is not g_{m}")
+        h2 = reference_entropy(prim, old.train_positions, self.entropy_quantile)
+        skills = list(self.skills)
+        skills[m] = Skill(m, prim, h2.detach(), old.train_positions, old.speed)
+        return dataclasses.replace(self, skills=tuple(skills), stability=None)
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, directory: str | os.PathLike[str]) -> Path:
+        """Write the library into ``directory`` (module docstring); returns the manifest path."""
+        root = Path(directory)
+        files: dict[str, str] = {}
+
+        def put(name: str, obj: Any) -> None:
+            with atomic_path(root / name) as tmp:
+                torch.save(obj, tmp)
+            files[name] = _sha256(root / name)
+
+        self.segmentation.save(root / "segmentation.pt")
+        files["segmentation.pt"] = _sha256(root / "segmentation.pt")
+        for s in self.skills:
+            s.primitive.save(root / f"step_{s.step}.pt")
+            files[f"step_{s.step}.pt"] = _sha256(root / f"step_{s.step}.pt")
+        put("skills.pt", {
+            "h2_ref": torch.stack([s.h2_ref.cpu() for s in self.skills]),
+            "train_positions": [s.train_positions.cpu() for s in self.skills],
+            "speed": torch.tensor([s.speed for s in self.skills], dtype=torch.float64),
+        })  # fmt: skip
+        manifest = {
+            "kind": _KIND,
+            "schema_version": LIBRARY_SCHEMA,
+            "n_steps": self.n_steps,
+            "dim": self.dim,
+            "steps": [{"step": s.step, "file": f"step_{s.step}.pt", "kind": s.primitive.kind,
+                       "attractor": s.attractor.tolist(), "h2_ref": float(s.h2_ref), "speed": s.speed}
+                      for s in self.skills],  # fmt: skip
+            "routes": [list(r) for r in self.routes],
+            "entropy_quantile": self.entropy_quantile,
+            "span": self.span,
+            "stability": self.stability,
+            "info": self.info,
+            "files": files,
+        }
+        text = json.dumps(manifest, indent=2, sort_keys=True, allow_nan=True)
+        with atomic_path(root / _MANIFEST) as tmp:
+            tmp.write_text(text)
+        return root / _MANIFEST
+
+    @classmethod
+    def load(
+        cls,
+        directory: str | os.PathLike[str],
+        *,
+        dtype: torch.dtype | None = None,
+        device: torch.device | str | None = None,
+    ) -> SkillLibrary:
+        """Read a library written by :meth:`save`; every file is checked against its manifest checksum.
+
+        Raises:
+            StoreError: a missing, truncated, altered or foreign file (the message names it), or another schema.
+        """
+        root = Path(directory)
+        man_path = root / _MANIFEST
+        try:
+            manifest = json.loads(man_path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise StoreError(f"cannot read the library manifest {man_path}: {exc}") from exc
+        if not isinstance(manifest, dict) or manifest.get("kind") != _KIND:
+            raise StoreError(f"{man_path} is not a skill-library manifest")
+        if manifest.get("schema_version") != LIBRARY_SCHEMA:
+            raise StoreError(f"{man_path}: schema {manifest.get('schema_version')!r}, expected {LIBRARY_SCHEMA}")
+        try:
+            files = dict(manifest["files"])
+            n_steps = int(manifest["n_steps"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise StoreError(f"{man_path} lacks {exc}") from exc
+        for name, digest in files.items():
+            path = root / name
+            if not path.is_file():
+                raise StoreError(f"library file {path} is missing")
+            if _sha256(path) != digest:
+                raise StoreError(f"library file {path} does not match its checksum (truncated or altered)")
+        needed = ["segmentation.pt", "skills.pt"] + [f"step_{m}.pt" for m in range(n_steps)]
+        for name in needed:
+            if name not in files:
+                raise StoreError(f"{man_path} does not list {name}")
+        seg = Segmentation.load(root / "segmentation.pt")
+        try:
+            extra = torch.load(root / "skills.pt", map_location="cpu", weights_only=True)
+            h2, xs, speed = extra["h2_ref"], extra["train_positions"], extra["speed"]
+        except Exception as exc:
+            raise StoreError(f"cannot read {root / 'skills.pt'}: {exc}") from exc
+        skills = []
+        for m in range(n_steps):
+            prim = load_primitive(root / f"step_{m}.pt", dtype=dtype, device=device)
+            f = {"dtype": prim.dtype, "device": prim.device}
+            skills.append(Skill(m, prim, h2[m].to(**f), xs[m].to(**f), float(speed[m])))
+        if dtype is not None or device is not None:
+            seg = _segmentation_to(seg, skills[0].primitive.dtype, skills[0].primitive.device)
+        try:
+            return cls(seg, tuple(skills), manifest.get("entropy_quantile"), float(manifest["span"]),
+                       manifest.get("stability"), dict(manifest.get("info") or {}))  # fmt: skip
+        except (KeyError, LfdError) as exc:
+            raise StoreError(f"{man_path}: inconsistent library ({exc})") from exc
+
+
+def _simple_init(exc: Exception) -> bool:
+    """Whether ``type(exc)(message)`` rebuilds the error (errors with extra constructor arguments are re-raised)."""
+    try:
+        type(exc)("probe")
+    except TypeError:
+        return False
+    return True
+
+
+def _segmentation_to(seg: Segmentation, dtype: torch.dtype, device: torch.device) -> Segmentation:
+    """The segmentation with its floating tensors in ``dtype`` on ``device``."""
+    f = {"dtype": dtype, "device": device}
+    return dataclasses.replace(
+        seg,
+        attractors=seg.attractors.to(**f),
+        space_mean=seg.space_mean.to(**f),
+        space_covariance=seg.space_covariance.to(**f),
+        space_weights=seg.space_weights.to(**f),
+    )
