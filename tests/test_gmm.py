@@ -432,3 +432,18 @@ def test_sample_gamma_distribution(generator: torch.Generator) -> None:
         return sample_gamma(a[:10], torch.Generator().manual_seed(3))
 
     assert torch.equal(draw(), draw())  # reproducible through the generator alone
+
+
+def test_gaussian_bank_matches_the_density_kernel() -> None:
+    from lfd_torch.gmm import GaussianBank, gaussian_log_density
+
+    gen = torch.Generator().manual_seed(0)
+    for d in (1, 2, 3):
+        K = 7
+        mean = torch.randn(K, d, generator=gen, dtype=torch.float64)
+        L = torch.randn(K, d, d, generator=gen, dtype=torch.float64)
+        cov = L @ L.transpose(-1, -2) + 0.1 * torch.eye(d, dtype=torch.float64)
+        x = 3 * torch.randn(50, d, generator=gen, dtype=torch.float64)
+        bank = GaussianBank(mean, cov)
+        assert torch.allclose(bank.log_density(x), gaussian_log_density(x, mean, cov), rtol=1e-12, atol=1e-10)
+        assert torch.allclose(bank.log_density(x.T.contiguous().T), bank.log_density(x))  # non-contiguous input

@@ -27,7 +27,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
-import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -38,7 +37,7 @@ import torch
 from torch import Tensor
 
 from lfd_torch.errors import CertificationError, NonFiniteError, ShapeMismatchError, StoreError, UnknownNameError
-from lfd_torch.gmm import GMM
+from lfd_torch.gmm import GMM, GaussianBank
 from lfd_torch.store import atomic_path
 
 __all__ = [
@@ -217,29 +216,22 @@ class StablePrimitive:
         lead = x.shape[:-1]
         xt = x.reshape(-1, d).T  # (d, N); contiguous for the rollout engine's (N, d) views of (d, N) storage
         n = xt.shape[1]
-        whiten, whiten_shift, log_norm, A_stack, A_shift = self._feature_major
+        bank, log_pi, A_stack, A_shift = self._feature_major
         # Feature-major evaluation, (K*d, N) intermediates: reductions over a trailing axis of size d are slow on
         # CPUs. Same numbers as sum_k softmax_k(log pi_k + log N(x; mu_k, Sigma_k)) A_k (x - g).
-        z = torch.mm(whiten, xt).sub_(whiten_shift).view(K, d, n)  # L_k^-1 (x - mu_k)
-        logits = z.square().sum(1).mul_(-0.5).add_(log_norm)  # (K, N)
+        logits = bank.log_density_fm(xt).add_(log_pi)  # (K, N)
         gamma = torch.softmax(logits, dim=0)
         y = torch.mm(A_stack, xt).sub_(A_shift).view(K, d, n)  # A_k (x - g)
         out = (y * gamma.unsqueeze(1)).sum(0)  # (d, N)
         return out.T.reshape(*lead, d)
 
     @functools.cached_property
-    def _feature_major(self) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """Stacked constants of :meth:`__call__`: L^-1 (K*d, d), L^-1 mu (K*d, 1), log-normalisers (K, 1),
-        A (K*d, d), A g (K*d, 1)."""
+    def _feature_major(self) -> tuple[GaussianBank, Tensor, Tensor, Tensor]:
+        """Constants of :meth:`__call__`: the GMM's Gaussians as a bank, log pi (K, 1), A (K*d, d), A g (K*d, 1)."""
         K, d = self.n_components, self.dim
-        chol = self.gmm.cholesky
-        eye = torch.eye(d, dtype=chol.dtype, device=chol.device).expand(K, d, d)
-        chol_inv = torch.linalg.solve_triangular(chol, eye, upper=False)  # (K, d, d)
-        whiten_shift = (chol_inv @ self.gmm.means.unsqueeze(-1)).reshape(K * d, 1)
-        log_det = torch.diagonal(chol, dim1=-2, dim2=-1).log().sum(-1)  # 0.5 log|Sigma_k|
-        log_norm = (self.gmm.weights.log() - log_det - 0.5 * d * math.log(2 * math.pi)).reshape(K, 1)
+        bank = GaussianBank(self.gmm.means, self.gmm.covariances)
         A_shift = (self.A @ self.attractor).reshape(K * d, 1)
-        return chol_inv.reshape(K * d, d), whiten_shift, log_norm, self.A.reshape(K * d, d), A_shift
+        return bank, self.gmm.weights.log().reshape(K, 1), self.A.reshape(K * d, d), A_shift
 
     def lyapunov(self, x: Tensor) -> Tensor:
         """V(x) = (x - g)^T P (x - g).

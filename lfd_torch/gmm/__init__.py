@@ -7,7 +7,8 @@ Notation:
     GMM: weights (K,), means (K, d), covariances (K, d, d)
 
 Modules:
-    gaussian     the Gaussian log-density kernel (:func:`gaussian_log_density`, :func:`gaussian_log_normalizer`)
+    gaussian     the Gaussian log-density kernel (:func:`gaussian_log_density`, :func:`gaussian_log_normalizer`,
+                 :class:`GaussianBank` for fixed Gaussians queried at every tick)
     niw          the Normal-inverse-Wishart kernels (prior, posterior, marginal likelihood, density, draws), shared
                  with :mod:`lfd_torch.segmentation`
     model        the :class:`GMM` dataclass (densities, posteriors, state dicts)
@@ -21,7 +22,7 @@ Modules:
 from lfd_torch.gmm.damm import DAMMResult, damm_labels, fit_damm
 from lfd_torch.gmm.em import bic, fit_em, fit_em_bic, kmeans_plus_plus, n_parameters, refine_em
 from lfd_torch.gmm.fitters import DAMMFitter, EMBICFitter, EMFitter, PCGMMFitter
-from lfd_torch.gmm.gaussian import gaussian_log_density, gaussian_log_normalizer
+from lfd_torch.gmm.gaussian import GaussianBank, gaussian_log_density, gaussian_log_normalizer
 from lfd_torch.gmm.model import GMM, InvalidGMMError, check_samples
 from lfd_torch.gmm.niw import (
     NIWPrior,
@@ -62,6 +63,7 @@ __all__ = [
     "DAMMFitter",
     "EMFitter",
     "EMBICFitter",
+    "GaussianBank",
     "gaussian_log_density",
     "gaussian_log_normalizer",
     "NIWPrior",

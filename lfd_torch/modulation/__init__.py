@@ -28,6 +28,7 @@ the stability analysis, :class:`Modulation`).
 from lfd_torch.modulation.entropy import (
     VelocityMixture,
     mixture_renyi_entropy,
+    pair_factors,
     pairwise_log_overlap,
     reference_entropy,
     renyi_entropy,
@@ -61,6 +62,7 @@ __all__ = [
     "modulate",
     "modulated_velocity",
     "modulation_matrix",
+    "pair_factors",
     "pairwise_log_overlap",
     "radial_component",
     "reference_entropy",

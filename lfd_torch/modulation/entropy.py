@@ -52,6 +52,7 @@ from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatch
 __all__ = [
     "VelocityMixture",
     "mixture_renyi_entropy",
+    "pair_factors",
     "pairwise_log_overlap",
     "reference_entropy",
     "renyi_entropy",
@@ -122,12 +123,38 @@ def velocity_mixture(primitive: Any, x: Tensor, *, velocity_covariances: Tensor 
     return VelocityMixture(log_w, means, S)
 
 
-def pairwise_log_overlap(means: Tensor, covariances: Tensor) -> Tensor:
+def pair_factors(covariances: Tensor) -> tuple[Tensor, Tensor]:
+    """Factors of the pairwise overlaps that do not depend on the means: L_ij^-1 and 0.5 log|S_i + S_j|.
+
+    Args:
+        covariances: (K, d, d) or broadcastable (..., K, d, d) symmetric positive-definite covariances S_k.
+
+    Returns:
+        (..., K, K, d, d) inverse lower Cholesky factors of S_i + S_j and (..., K, K) half log-determinants.
+
+    Raises:
+        InvalidArgumentError: some S_i + S_j is not positive definite.
+    """
+    d = covariances.shape[-1]
+    S_pair = covariances.unsqueeze(-3) + covariances.unsqueeze(-4)  # (..., K, K, d, d)
+    S_pair = 0.5 * (S_pair + S_pair.transpose(-2, -1))
+    L, info = torch.linalg.cholesky_ex(S_pair)
+    if bool((info != 0).any()):
+        raise InvalidArgumentError("covariances: some S_i + S_j is not positive definite")
+    eye = torch.eye(d, dtype=L.dtype, device=L.device)
+    L_inv = torch.linalg.solve_triangular(L, eye.expand_as(L), upper=False)
+    return L_inv, torch.diagonal(L, dim1=-2, dim2=-1).log().sum(-1)
+
+
+def pairwise_log_overlap(
+    means: Tensor, covariances: Tensor | None = None, *, factors: tuple[Tensor, Tensor] | None = None
+) -> Tensor:
     """log N(mu_i; mu_j, S_i + S_j) = log of the integral of N(u; mu_i, S_i) N(u; mu_j, S_j) over u.
 
     Args:
         means: (..., K, d) component means.
         covariances: (K, d, d) or broadcastable (..., K, d, d) symmetric positive-definite covariances.
+        factors: precomputed :func:`pair_factors` of the covariances (then ``covariances`` is not used).
 
     Returns:
         (..., K, K) symmetric tensor.
@@ -136,26 +163,22 @@ def pairwise_log_overlap(means: Tensor, covariances: Tensor) -> Tensor:
         InvalidArgumentError: some S_i + S_j is not positive definite.
     """
     d = means.shape[-1]
-    S_pair = covariances.unsqueeze(-3) + covariances.unsqueeze(-4)  # (..., K, K, d, d)
-    S_pair = 0.5 * (S_pair + S_pair.transpose(-2, -1))
-    L, info = torch.linalg.cholesky_ex(S_pair)
-    if bool((info != 0).any()):
-        raise InvalidArgumentError("covariances: some S_i + S_j is not positive definite")
-    eye = torch.eye(d, dtype=L.dtype, device=L.device)
-    L_inv = torch.linalg.solve_triangular(L, eye.expand_as(L), upper=False)  # (..., K, K, d, d)
+    L_inv, half_log_det = pair_factors(covariances) if factors is None else factors
     diff = means.unsqueeze(-2) - means.unsqueeze(-3)  # (..., K, K, d): mu_i - mu_j
     z = (L_inv @ diff.unsqueeze(-1)).squeeze(-1)
-    half_log_det = torch.diagonal(L, dim1=-2, dim2=-1).log().sum(-1)  # 0.5 log|S_i + S_j|
     return -0.5 * (z * z).sum(-1) - half_log_det - 0.5 * d * math.log(2.0 * math.pi)
 
 
-def mixture_renyi_entropy(log_weights: Tensor, means: Tensor, covariances: Tensor) -> Tensor:
+def mixture_renyi_entropy(
+    log_weights: Tensor, means: Tensor, covariances: Tensor, *, factors: tuple[Tensor, Tensor] | None = None
+) -> Tensor:
     """Quadratic Renyi entropy -log sum_ij w_i w_j N(mu_i; mu_j, S_i + S_j) of an unnormalised Gaussian mixture.
 
     Args:
         log_weights: (..., K) log w_k; need not be normalised (``-inf`` allowed for a zero weight).
         means: (..., K, d) component means.
         covariances: (K, d, d) or broadcastable (..., K, d, d) covariances.
+        factors: optional precomputed :func:`pair_factors` of ``covariances`` (e.g. gathered per row).
 
     Returns:
         (...) H2, computed with one ``logsumexp`` over the K^2 pairs (+inf only if every weight is zero).
@@ -174,7 +197,7 @@ def mixture_renyi_entropy(log_weights: Tensor, means: Tensor, covariances: Tenso
     K, d = means.shape[-2:]
     if covariances.ndim < 3 or tuple(covariances.shape[-3:]) != (K, d, d):
         raise ShapeMismatchError(f"covariances must have shape (..., {K}, {d}, {d}), got {tuple(covariances.shape)}")
-    log_overlap = pairwise_log_overlap(means, covariances)  # (..., K, K)
+    log_overlap = pairwise_log_overlap(means, covariances, factors=factors)  # (..., K, K)
     terms = log_weights.unsqueeze(-1) + log_weights.unsqueeze(-2) + log_overlap
     return -torch.logsumexp(terms.flatten(-2), dim=-1)
 

@@ -9,7 +9,8 @@ Speed band (a time reparametrisation). The commanded velocity is u(x) = alpha(x)
     alpha(x) = min(max(1, v_floor(r) / ||M f||), v_cap(r) / ||M f||),   r = ||x - g_m||,
     v_floor(r) = v_lo min(1, r / r_s),   v_cap(r) = v_hi min(1, r / r_s),
 
-v_lo = ``min_speed`` and v_hi = ``max_speed`` times the step's median demonstrated speed, r_s = ``slow_radius``
+v_lo = ``min_speed`` and v_hi = ``max_speed`` times the step's typical demonstrated speed
+(``Skill.speed``, a high quantile of its speeds), r_s = ``slow_radius``
 x span. alpha > 0 only rescales the speed: the streamlines (hence the path metrics E3, DTWD) are those of M f, and
 for any SPD P
 
@@ -60,7 +61,7 @@ class Arrival:
 
     Attributes:
         radius: step completion ball r_a, as a fraction of the data span (> 0).
-        min_speed: v_lo as a fraction of the step's median demonstrated speed (0 disables the floor).
+        min_speed: v_lo as a fraction of the step's typical demonstrated speed (0 disables the floor).
         max_speed: v_hi as a fraction of the same speed (>= min_speed; inf disables the cap).
         slow_radius: r_s, the radius inside which the band narrows linearly to 0 at g_m, fraction of the span (> 0).
     """
@@ -68,7 +69,7 @@ class Arrival:
     radius: float = 0.005
     min_speed: float = 0.1
     max_speed: float = 3.0
-    slow_radius: float = 0.05
+    slow_radius: float = 0.02
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "radius", _fraction(self.radius, "arrival radius", allow_zero=False))

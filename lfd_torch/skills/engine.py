@@ -31,11 +31,11 @@ import torch
 from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError
-from lfd_torch.modulation import Branch, Modulation, modulated_velocity, renyi_entropy
-from lfd_torch.modulation.matrix import goal_direction
+from lfd_torch.modulation import Branch, Modulation, modulated_velocity
 from lfd_torch.rollout import Disturbance, RolloutResult, rollout
 from lfd_torch.skills.arrival import Arrival, speed_band
 from lfd_torch.skills.library import SkillLibrary
+from lfd_torch.skills.stack import PrimitiveStack
 
 __all__ = ["Decision", "EngineRollout", "SkillEngine", "TickResult"]
 
@@ -145,6 +145,8 @@ class SkillEngine:
         if not torch.allclose(finals, finals[:1].expand_as(finals)):
             raise InvalidArgumentError("the routes end at different attractors; one task has one final attractor")
         self.final_attractor = finals[0]
+        self._stack = PrimitiveStack([s.primitive for s in library.skills], **f)
+        self._origin = torch.zeros(library.dim, **f)
         from lfd_torch.skills.tree import SkillTree
 
         self.tree = SkillTree(self)
@@ -163,9 +165,13 @@ class SkillEngine:
             raise NonFiniteError(f"{name} contains NaN or Inf")
         return x.to(**self._f)
 
+    def log_density(self, x: Tensor) -> Tensor:
+        """(B, M) log p(x|A_m) (``Segmentation.log_density``)."""
+        return self.segmentation.log_density(x)
+
     def own_other(self, x: Tensor, step: Tensor) -> tuple[Tensor, Tensor]:
         """log p(x|A_m) and log p(x|A_m-) of the given steps: (B,) each, from one density evaluation."""
-        ld = self.segmentation.log_density(x)  # (B, M)
+        ld = self.log_density(x)  # (B, M)
         own = ld.gather(-1, step.unsqueeze(-1)).squeeze(-1)
         other = ld.scatter(-1, step.unsqueeze(-1), -math.inf).amax(-1) if ld.shape[-1] > 1 else torch.full_like(own, -math.inf)
         return own, other
@@ -174,7 +180,7 @@ class SkillEngine:
         """(B,) route whose first subtask space is the most likely at x (the first such route on ties)."""
         if len(self.routes) == 1:
             return torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
-        ld = self.segmentation.log_density(x)[:, self._first]  # (B, R)
+        ld = self.log_density(x)[:, self._first]  # (B, R)
         return ld.argmax(-1)
 
     def reached(self, x: Tensor, step: Tensor) -> Tensor:
@@ -222,7 +228,8 @@ class SkillEngine:
     def velocity(
         self, x: Tensor, step: Tensor, done: Tensor, inside: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
-        """Commanded velocity and branch of B states in their active steps.
+        """Commanded velocity and branch of B states in their active steps (all steps at once,
+        :class:`~lfd_torch.skills.stack.PrimitiveStack`).
 
         Args:
             x: (B, d) positions.
@@ -234,33 +241,23 @@ class SkillEngine:
             (B, d) velocities (units/s) and (B,) int8 branches.
         """
         mod = self.modulation
-        out = torch.zeros_like(x)
-        branch = torch.full(step.shape, int(Branch.AT_GOAL), dtype=torch.int8, device=x.device)
+        f, h2 = self._stack.evaluate(x, step, entropy=mod.uses_entropy)
+        own = other = None
         if mod.uses_subtask_densities:
             own, other = self.own_other(x, step)
             if inside is None:
                 inside = own >= other
             other = torch.where(inside, torch.full_like(other, -math.inf), other)  # the tree's decision rules
-        else:
-            own = other = None
-        live = ~done
-        for m in torch.unique(step[live]).tolist():
-            rows = torch.nonzero(live & (step == m)).reshape(-1)
-            skill = self.library.skills[m]
-            xm = x.index_select(0, rows)
-            f = skill.primitive(xm)
-            h2 = renyi_entropy(skill.primitive, xm) if mod.uses_entropy else None
-            res = modulated_velocity(
-                xm, f, skill.attractor,
-                log_p_own=None if own is None else own[rows], log_p_other=None if other is None else other[rows],
-                h2=h2, h2_ref=self._h2_ref[m], mode=mod.mode, lambda_limit=mod.lambda_limit,
-                radial_floor=mod.radial_floor,
-            )  # fmt: skip
-            r = goal_direction(xm, skill.attractor).distance
-            u = speed_band(res.velocity, r, self._v_lo[m], self._v_hi[m], self._slow_radius)
-            out.index_copy_(0, rows, u)
-            branch.index_copy_(0, rows, res.branch)
-        return out, branch
+        e = x - self.goals[step]  # the modulation is translation invariant: evaluate it around g_m = 0
+        res = modulated_velocity(
+            e, f, self._origin, log_p_own=own, log_p_other=other, h2=h2, h2_ref=self._h2_ref[step], mode=mod.mode,
+            lambda_limit=mod.lambda_limit, radial_floor=mod.radial_floor,
+        )  # fmt: skip
+        r = torch.linalg.vector_norm(e, dim=-1)
+        u = speed_band(res.velocity, r, self._v_lo[step], self._v_hi[step], self._slow_radius)
+        u = torch.where(done.unsqueeze(-1), torch.zeros_like(u), u)
+        branch = torch.where(done, torch.full_like(res.branch, int(Branch.AT_GOAL)), res.branch)
+        return u, branch
 
     # ------------------------------------------------------------------ public ticks
     def tick(self, x: Tensor, step: int | None = None, route: int | None = None) -> TickResult:
@@ -328,7 +325,17 @@ class SkillEngine:
             return y
 
         def field(x: Tensor) -> Tensor:
-            v, br = self.velocity(x, state["step"], state["done"])
+            done = state["done"]
+            if bool(done.any()):  # finished rows stay in the working set (the hook sees them): skip their field
+                rows = torch.nonzero(~done).reshape(-1)
+                v = torch.zeros_like(x)
+                br = torch.full((B,), int(Branch.AT_GOAL), dtype=torch.int8, device=dev)
+                if rows.numel():
+                    v_live, b_live = self.velocity(x.index_select(0, rows), state["step"][rows], done[rows])
+                    v.index_copy_(0, rows, v_live)
+                    br.index_copy_(0, rows, b_live)
+            else:
+                v, br = self.velocity(x, state["step"], done)
             if state["pending"] is not None:
                 branch_log[state["pending"]] = br
                 state["pending"] = None
@@ -358,3 +365,4 @@ class SkillEngine:
             own, other = self.own_other(x, step)
             shares.append(float((own < other).double().mean()))
         return shares
+

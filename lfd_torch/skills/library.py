@@ -1,7 +1,7 @@
 """Skill library: one certified primitive per step of a segmentation (paper Sec. III-B/C, Table I).
 
 A skill m holds the stable primitive learned on the pieces of step m (``Segmentation.split(end_at_attractor=True)``,
-attractor g_m), the step's training positions, its median demonstrated speed, and the entropy threshold H2(x_r)
+attractor g_m), the step's training positions, its typical demonstrated speed, and the entropy threshold H2(x_r)
 of the small-scale modulation computed at fit time (NOTES sec. 4: by default the largest H2 over the step's
 training states; a quantile, or the paper's literal x_r = g_m, by ``entropy_quantile``). The subtask space A_m
 stays in the segmentation (``Segmentation.log_density`` / ``other_log_density``), which the library carries.
@@ -44,6 +44,10 @@ LIBRARY_SCHEMA = 1
 _KIND = "lfd_torch.SkillLibrary"
 _MANIFEST = "manifest.json"
 
+#: The step's typical speed is this quantile of its demonstrated speeds (a step that starts or ends at rest has a
+#: low median; the engine's speed band is relative to the speed at which the step is actually performed).
+SPEED_QUANTILE = 0.9
+
 Fitter = Callable[..., StablePrimitive]
 
 
@@ -63,7 +67,8 @@ class Skill:
         primitive: certified primitive with attractor g_m.
         h2_ref: 0-d threshold H2(x_r) of the small-scale modulation.
         train_positions: (N_m, d) positions of the step's training samples (without the appended g_m).
-        speed: median demonstrated speed of the step, units/s (used by the arrival rule of the engine).
+        speed: typical demonstrated speed of the step (the :data:`SPEED_QUANTILE` quantile), units/s (reference of
+            the engine's speed band).
     """
 
     step: int
@@ -87,13 +92,13 @@ def _sha256(path: Path) -> str:
 
 
 def _step_pieces(pieces: Demos) -> tuple[Tensor, float]:
-    """Training positions (without the appended attractor sample) and median speed of one step's pieces."""
+    """Training positions (without the appended attractor sample) and typical speed of one step's pieces."""
     keep = pieces.mask.clone()
     last = (pieces.lengths - 1).clamp_min(0)
     keep[torch.arange(pieces.n_demos, device=keep.device), last] = False  # the appended g_m
     x = pieces.positions[keep]
     speed = torch.linalg.vector_norm(pieces.velocities[keep], dim=-1)
-    return x, float(speed.median()) if speed.numel() else 0.0
+    return x, float(speed.quantile(SPEED_QUANTILE)) if speed.numel() else 0.0
 
 
 @dataclass(frozen=True, eq=False)

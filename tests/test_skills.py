@@ -1,0 +1,374 @@
+"""Skill library, behaviour tree, decision engine, pushes and the stability check (lfd_torch.skills)."""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+
+import pytest
+import torch
+
+from lfd_torch.data.lasa import load_lasa
+from lfd_torch.ds import fit_lpvds, fit_seds
+from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError, StoreError
+from lfd_torch.gmm import PCGMMFitter
+from lfd_torch.modulation import Branch, Modulation, renyi_entropy
+from lfd_torch.segmentation import FixedSegmenter, segment
+from lfd_torch.segmentation.synthetic import multi_step_demos
+from lfd_torch.skills import (
+    Arrival,
+    SkillEngine,
+    SkillLibrary,
+    check_stability,
+    random_pushes,
+    speed_band,
+)
+
+F64 = torch.float64
+
+
+def _l_task(n_demos: int = 2, seed: int = 0):
+    """Two legs (down, then right to the goal at the origin), minimum-jerk timing, switch exactly at the corner."""
+    corners = torch.tensor([[-1.0, 1.0], [-1.0, 0.0], [0.0, 0.0]], dtype=F64)
+    syn = multi_step_demos(torch.Generator().manual_seed(seed), n_demos=n_demos, waypoints=corners,
+                           samples_per_step=60, timing_jitter=0.0, waypoint_jitter=0.01, noise=0.002)  # fmt: skip
+    demos = syn.demos
+    seg = FixedSegmenter([0.5])(demos)
+    return demos, seg
+
+
+@pytest.fixture(scope="module")
+def l_library() -> SkillLibrary:
+    demos, seg = _l_task()
+    return SkillLibrary.learn(demos, seg, generator=torch.Generator().manual_seed(1))
+
+
+@pytest.fixture(scope="module")
+def mm3_all() -> tuple:
+    demos = load_lasa("Multi_Models_3")
+    seg = segment(demos, generator=torch.Generator().manual_seed(0))
+    return demos, SkillLibrary.learn(demos, seg, generator=torch.Generator().manual_seed(0), check={"n_box": 400,
+                                     "n_near": 100, "n_far": 100})  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def mm3_one() -> tuple:
+    demos = load_lasa("Multi_Models_3")[[0]]
+    seg = segment(demos, generator=torch.Generator().manual_seed(0))
+    return demos, SkillLibrary.learn(demos, seg, generator=torch.Generator().manual_seed(0), check={"n_box": 400,
+                                     "n_near": 100, "n_far": 100})  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------- library
+def test_learn_fits_one_certified_primitive_per_step(l_library: SkillLibrary) -> None:
+    lib = l_library
+    seg = lib.segmentation
+    assert lib.n_steps == seg.n_steps == 2
+    for m, s in enumerate(lib.skills):
+        assert s.step == m
+        assert torch.allclose(s.attractor, seg.attractors[m])
+        assert s.primitive.stability_certificate().certified
+        # default threshold: the largest H2 over the step's own training states (independent evaluation)
+        assert float(s.h2_ref) == pytest.approx(float(renyi_entropy(s.primitive, s.train_positions).max()), rel=1e-12)
+        assert s.speed > 0
+    assert lib.stability is not None and lib.stability["passed"]
+
+
+def test_entropy_threshold_at_the_attractor_is_the_papers_literal_option() -> None:
+    demos, seg = _l_task()
+    lib = SkillLibrary.learn(demos, seg, generator=torch.Generator().manual_seed(1), entropy_quantile=None, check=False)
+    for s in lib.skills:
+        assert float(s.h2_ref) == pytest.approx(float(renyi_entropy(s.primitive, s.attractor.unsqueeze(0))[0]))
+
+
+def test_with_step_and_reuse_do_not_refit_the_other_steps(l_library: SkillLibrary) -> None:
+    demos, seg = _l_task()
+    calls = []
+    base = functools.partial(fit_lpvds, gmm=PCGMMFitter(), lyapunov="pqlf")
+
+    def counting(part, g, *, generator):
+        calls.append(tuple(g.tolist()))
+        return base(part, g, generator=generator)
+
+    lib2 = SkillLibrary.learn(demos, seg, primitive=counting, generator=torch.Generator().manual_seed(1),
+                              reuse={0: l_library.skills[0]}, check=False)  # fmt: skip
+    assert calls == [tuple(seg.attractors[1].tolist())]  # only step 1 was fitted
+    assert lib2.skills[0].primitive is l_library.skills[0].primitive or torch.equal(
+        lib2.skills[0].primitive.A, l_library.skills[0].primitive.A
+    )
+    seds = fit_seds(seg.split(demos, end_at_attractor=True)[1], seg.attractors[1], n_components=2,
+                    generator=torch.Generator().manual_seed(2))  # fmt: skip
+    lib3 = l_library.with_step(1, seds)
+    assert lib3.skills[0] is l_library.skills[0]
+    assert lib3.skills[1].primitive is not l_library.skills[1].primitive and lib3.skills[1].primitive.kind == "SEDS"
+    assert lib3.stability is None
+    with pytest.raises(ShapeMismatchError, match="g_0"):
+        l_library.with_step(0, seds)  # wrong attractor
+
+
+def test_save_load_round_trip_reproduces_rollouts_bit_for_bit(l_library: SkillLibrary, tmp_path) -> None:
+    l_library.save(tmp_path / "lib")
+    lib2 = SkillLibrary.load(tmp_path / "lib")
+    x0 = torch.tensor([[-1.2, 1.3], [-0.5, 0.6], [0.3, -0.4]], dtype=F64)
+    a = SkillEngine(l_library, "full").rollout(x0, dt=0.01, n_steps=1500)
+    b = SkillEngine(lib2, "full").rollout(x0, dt=0.01, n_steps=1500)
+    assert torch.equal(a.result.positions, b.result.positions)
+    assert torch.equal(a.branches, b.branches) and torch.equal(a.steps, b.steps)
+    assert lib2.stability == json.loads(json.dumps(l_library.stability))
+
+
+@pytest.mark.parametrize("damage", ["missing", "truncated", "flipped", "foreign_manifest", "bad_json", "schema"])
+def test_damaged_library_files_raise_store_error_naming_the_file(l_library: SkillLibrary, tmp_path, damage) -> None:
+    root = tmp_path / "lib"
+    l_library.save(root)
+    target = root / "step_1.pt"
+    if damage == "missing":
+        target.unlink()
+    elif damage == "truncated":
+        target.write_bytes(target.read_bytes()[:100])
+    elif damage == "flipped":
+        raw = bytearray(target.read_bytes())
+        raw[len(raw) // 2] ^= 0x01
+        target.write_bytes(bytes(raw))
+    elif damage == "foreign_manifest":
+        target = root / "manifest.json"
+        target.write_text(json.dumps({"kind": "something else"}))
+    elif damage == "bad_json":
+        target = root / "manifest.json"
+        target.write_text("{not json")
+    else:
+        target = root / "manifest.json"
+        man = json.loads(target.read_text())
+        man["schema_version"] = 999
+        target.write_text(json.dumps(man))
+    with pytest.raises(StoreError, match=target.name):
+        SkillLibrary.load(root)
+
+
+# ---------------------------------------------------------------------------------------------- tree vs vectorised
+def _random_pairs(lib: SkillLibrary, n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Random (x, route, index): a third uniform in a box twice the data span, a third near an attractor of the
+    route (inside and just outside the arrival ball), a third near the training data of a random step."""
+    x_all = torch.cat([s.train_positions for s in lib.skills])
+    lo, hi = x_all.amin(0), x_all.amax(0)
+    c, h = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    routes = lib.routes
+    route = torch.randint(0, len(routes), (n,), generator=gen)
+    length = torch.tensor([len(r) for r in routes])[route]
+    index = (torch.rand(n, generator=gen, dtype=F64) * length).long()
+    step = torch.tensor([routes[int(r)][int(j)] for r, j in zip(route, index)])
+    x = c + 2 * h * (2 * torch.rand(n, 2, generator=gen, dtype=F64) - 1)
+    third = n // 3
+    r_a = Arrival().radius * lib.span
+    g = lib.attractors[step[:third]]
+    x[:third] = g + 2 * r_a * (2 * torch.rand(third, 2, generator=gen, dtype=F64) - 1)
+    for i in range(third, 2 * third):
+        data = lib.skills[int(step[i])].train_positions
+        x[i] = data[int(torch.randint(0, data.shape[0], (1,), generator=gen))] + 0.02 * lib.span * torch.randn(
+            2, generator=gen, dtype=F64
+        )
+    return x, route, index
+
+
+@pytest.mark.parametrize("which", ["l_library", "mm3_all"])
+@pytest.mark.parametrize("mode", ["none", "full"])
+def test_vectorised_decisions_equal_the_py_trees_tick(which: str, mode: str, request) -> None:
+    lib = request.getfixturevalue(which)
+    lib = lib[1] if isinstance(lib, tuple) else lib
+    eng = SkillEngine(lib, mode)
+    gen = torch.Generator().manual_seed(3)
+    x, route, index = _random_pairs(lib, 1500, gen)
+    v, dec, branch = eng.step_batch(x, route, index)
+    fresh = torch.full_like(route, -1)
+    v0, dec0, branch0 = eng.step_batch(x, fresh, torch.zeros_like(index))  # new tasks: the tree picks the route
+    n_done = n_advanced = 0
+    for i in range(x.shape[0]):
+        r, j = int(route[i]), int(index[i])
+        t = eng.tick(x[i], step=lib.routes[r][j], route=r)
+        assert (t.route, t.index, t.done) == (int(dec.route[i]), int(dec.index[i]), bool(dec.done[i]))
+        assert int(t.branch) == int(branch[i])
+        assert torch.allclose(t.velocity, v[i], rtol=1e-12, atol=1e-12)
+        n_done += t.done
+        n_advanced += t.index > j
+        if i % 5 == 0:
+            t0 = eng.tick(x[i])
+            assert (t0.route, t0.index, int(t0.branch)) == (int(dec0.route[i]), int(dec0.index[i]), int(branch0[i]))
+    assert n_advanced > 0  # the sample exercises step completion
+    if lib.n_steps > 1 and mode == "full":
+        assert bool((branch == int(Branch.LARGE_SCALE)).any())
+
+
+def test_tick_records_decisions_and_stops_at_the_goal(l_library: SkillLibrary, tmp_path) -> None:
+    eng = SkillEngine(l_library, "full")
+    start = l_library.skills[0].train_positions[0]
+    t = eng.tick(start)
+    names = [n for n, _ in t.decisions]
+    assert names[:2] == ["ChooseRoute 0", "Reached 0"] and "task" == names[-1]
+    assert t.step == 0 and not t.done and torch.linalg.vector_norm(t.velocity) > 0
+    last = l_library.n_steps - 1
+    t = eng.tick(l_library.skills[last].attractor.clone(), step=last)
+    assert t.done and t.step is None and torch.count_nonzero(t.velocity) == 0 and t.branch is Branch.AT_GOAL
+    files = eng.tree.render(tmp_path / "tree")
+    text = (tmp_path / "tree.txt").read_text()
+    assert "step 0" in text and "Recover 1" in text and len(files) >= 2
+    with pytest.raises(InvalidArgumentError):
+        eng.tick(start, step=7)
+
+
+# ---------------------------------------------------------------------------------------------- rollouts
+def _lyapunov_rates(lib: SkillLibrary, out) -> torch.Tensor:
+    """dV_m/dt = 2 (x - g_m)^T P_m x_dot at every valid moving sample, m the active step."""
+    res = out.result
+    x, v, steps = res.positions, res.velocities, out.steps
+    g = lib.attractors[steps]
+    P = torch.stack([s.primitive.P for s in lib.skills])[steps]
+    e = x - g
+    rate = 2 * torch.einsum("btd,btde,bte->bt", e, P, v)
+    moving = res.mask & (torch.linalg.vector_norm(v, dim=-1) > 0)
+    return rate[moving]
+
+
+def test_rollout_completes_every_step_in_order(l_library: SkillLibrary) -> None:
+    eng = SkillEngine(l_library, "full")
+    gen = torch.Generator().manual_seed(5)
+    x0 = torch.tensor([-1.0, 1.0], dtype=F64) + 0.6 * torch.randn(64, 2, generator=gen, dtype=F64)
+    out = eng.rollout(x0, dt=0.01, n_steps=3000)
+    assert bool(out.done.all()) and bool(out.result.converged.all())
+    assert bool((out.steps[:, 1:] >= out.steps[:, :-1]).all())  # progress never goes back
+    end = out.result.positions[torch.arange(64), out.result.lengths - 1]
+    assert float(torch.linalg.vector_norm(end - l_library.segmentation.attractors[-1], dim=-1).max()) < eng.arrival_radius
+    assert bool((_lyapunov_rates(l_library, out) < 0).all())
+
+
+def test_pushes_are_labelled_by_where_they_land(l_library: SkillLibrary) -> None:
+    eng = SkillEngine(l_library, "full")
+    B = 64
+    x0 = l_library.skills[0].train_positions[:1].expand(B, 2).clone()
+    plan = random_pushes(B, generator=torch.Generator().manual_seed(7), n_pushes=2, window=(20, 120),
+                         magnitude=(0.1 * l_library.span, 0.3 * l_library.span))  # fmt: skip
+    out = eng.rollout(x0, dt=0.01, n_steps=3000, pushes=plan)
+    assert bool(out.done.all())
+    applied = [p for p in out.pushes if p["applied"]]
+    assert {p["kind"] for p in applied} == {"large", "small"}
+    for p in applied:
+        b, k = p["row"], p["sample"]
+        x = out.result.positions[b, k]
+        step = torch.tensor([p["step"]])
+        own, other = eng.own_other(x.unsqueeze(0), step)
+        if p["kind"] == "large":
+            assert float(own) < float(other)
+        else:
+            assert float(own) >= float(other) and p["data_distance"] >= plan.away
+    # the same seed gives the same pushes
+    again = eng.rollout(x0, dt=0.01, n_steps=3000, pushes=random_pushes(
+        B, generator=torch.Generator().manual_seed(7), n_pushes=2, window=(20, 120),
+        magnitude=(0.1 * l_library.span, 0.3 * l_library.span)))  # fmt: skip
+    assert torch.equal(again.result.positions, out.result.positions)
+
+
+def test_speed_band_rescales_speed_only() -> None:
+    gen = torch.Generator().manual_seed(0)
+    u = torch.randn(500, 3, generator=gen, dtype=F64) * torch.logspace(-4, 2, 500, dtype=F64).unsqueeze(-1)
+    r = torch.rand(500, generator=gen, dtype=F64) * 2
+    out = speed_band(u, r, 0.5, 5.0, 1.0)
+    cos = torch.nn.functional.cosine_similarity(out, u, dim=-1)
+    assert torch.allclose(cos, torch.ones_like(cos))
+    speed = torch.linalg.vector_norm(out, dim=-1)
+    ramp = r.clamp(max=1.0)
+    assert bool((speed >= 0.5 * ramp * (1 - 1e-12)).all() & (speed <= 5.0 * ramp * (1 + 1e-12)).all())
+    mid = (torch.linalg.vector_norm(u, dim=-1) >= 0.5 * ramp) & (torch.linalg.vector_norm(u, dim=-1) <= 5.0 * ramp)
+    assert torch.equal(out[mid], u[mid])  # inside the band nothing changes
+    assert torch.equal(speed_band(torch.zeros(2, 3, dtype=F64), r[:2], 0.5, 5.0, 1.0), torch.zeros(2, 3, dtype=F64))
+
+
+def test_a_crawling_primitive_arrives_in_bounded_time_with_the_floor(l_library: SkillLibrary) -> None:
+    """Slow every primitive by 1e-3 (still certified): without the speed floor the task does not finish in the
+    budget, with it it does; the floor changes no decision and keeps dV/dt < 0."""
+    import dataclasses
+
+    slow = l_library
+    for s in l_library.skills:
+        p = s.primitive
+        slow = slow.with_step(s.step, dataclasses.replace(p, A=p.A * 1e-3))
+    x0 = l_library.skills[0].train_positions[:4].clone()
+    off = SkillEngine(slow, "none", Arrival(min_speed=0.0)).rollout(x0, dt=0.01, n_steps=2000)
+    on = SkillEngine(slow, "none", Arrival(min_speed=0.1)).rollout(x0, dt=0.01, n_steps=2000)
+    assert not bool(off.done.any())
+    assert bool(on.done.all())
+    assert bool((_lyapunov_rates(slow, on) < 0).all())
+
+
+# ---------------------------------------------------------------------------------------------- stability check
+def test_stability_check_passes_and_catches_a_field_that_climbs_v(l_library: SkillLibrary, monkeypatch) -> None:
+    rep = check_stability(l_library, n_box=300, n_near=100, n_far=100)
+    assert rep.passed and rep.worst_margin < 0 and set(rep.margins) == {"none", "large", "small", "full"}
+    original = SkillEngine.velocity
+
+    def climbing(self, x, step, done, inside=None):
+        v, b = original(self, x, step, done, inside)
+        far = torch.linalg.vector_norm(x - self.goals[step], dim=-1) > 0.5 * self.library.span
+        return torch.where(far.unsqueeze(-1), -v, v), b
+
+    monkeypatch.setattr(SkillEngine, "velocity", climbing)
+    bad = check_stability(l_library, modes=["none"], n_box=300, n_near=100, n_far=100)
+    assert not bad.passed and bad.worst_margin > 0 and bad.worst_region in ("box", "far")
+
+
+# ---------------------------------------------------------------------------------------------- LASA acceptance
+@pytest.mark.parametrize("which", ["mm3_one", "mm3_all"])
+def test_mm3_every_start_finishes_the_task_under_pushes(which: str, request) -> None:
+    """1,000 random starts in a box twice the data span, modes none and full, random large and small pushes:
+    every row finishes the whole task at the final attractor within the budget, no NaN, every dV/dt < 0."""
+    demos, lib = request.getfixturevalue(which)
+    x_all = demos.samples()[0]
+    lo, hi = x_all.amin(0), x_all.amax(0)
+    c, h = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    B = 1000
+    x0 = c + 2 * h * (2 * torch.rand(B, 2, generator=torch.Generator().manual_seed(11), dtype=F64) - 1)
+    for mode in ("none", "full"):
+        plan = random_pushes(B, generator=torch.Generator().manual_seed(12), n_pushes=2, window=(50, 500),
+                             magnitude=(0.1 * lib.span, 0.3 * lib.span))  # fmt: skip
+        out = SkillEngine(lib, mode).rollout(x0, dt=0.01, n_steps=4000, pushes=plan)
+        assert bool(out.done.all()), f"{mode}: {int((~out.done).sum())} rows did not finish"
+        assert bool(torch.isfinite(out.result.positions).all())
+        assert bool((_lyapunov_rates(lib, out) < 0).all())
+        assert sum(p["applied"] for p in out.pushes) > B  # pushes did happen
+    assert lib.stability["passed"]
+
+
+@pytest.mark.parametrize("which", ["mm3_one", "mm3_all"])
+def test_replayed_training_states_rarely_take_the_large_scale_branch(which: str, request) -> None:
+    _, lib = request.getfixturevalue(which)
+    shares = SkillEngine(lib, "full").replay_large_share()
+    assert max(shares) <= 0.02, shares
+
+
+def test_engine_arguments_are_checked(l_library: SkillLibrary) -> None:
+    with pytest.raises(InvalidArgumentError):
+        SkillEngine(object())  # type: ignore[arg-type]
+    with pytest.raises(InvalidArgumentError):
+        Arrival(radius=0)
+    with pytest.raises(InvalidArgumentError):
+        Arrival(min_speed=2.0, max_speed=1.0)
+    eng = SkillEngine(l_library, Modulation(mode="small"))
+    with pytest.raises(ShapeMismatchError):
+        eng.rollout(torch.zeros(3, 3, dtype=F64), dt=0.01, n_steps=10)
+    with pytest.raises(InvalidArgumentError):
+        random_pushes(4, generator=torch.Generator(), window=(0, 10), magnitude=(1.0, 2.0))
+    assert math.isfinite(eng.arrival_radius)
+
+
+def test_stacked_evaluation_equals_each_primitive(l_library: SkillLibrary) -> None:
+    from lfd_torch.skills.stack import PrimitiveStack
+
+    lib = l_library
+    stack = PrimitiveStack([s.primitive for s in lib.skills], dtype=F64, device=torch.device("cpu"))
+    gen = torch.Generator().manual_seed(4)
+    x = 2 * torch.randn(300, 2, generator=gen, dtype=F64)
+    step = torch.randint(0, lib.n_steps, (300,), generator=gen)
+    f, h2 = stack.evaluate(x, step, entropy=True)
+    for m, s in enumerate(lib.skills):
+        rows = step == m
+        assert torch.allclose(f[rows], s.primitive(x[rows]), rtol=1e-10, atol=1e-12)
+        assert torch.allclose(h2[rows], renyi_entropy(s.primitive, x[rows]), rtol=1e-10, atol=1e-10)
