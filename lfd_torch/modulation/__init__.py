@@ -44,6 +44,7 @@ from lfd_torch.modulation.policy import (
     Modulation,
     ModulationResult,
     modulated_velocity,
+    modulated_velocity_unchecked,
 )
 
 __all__ = [
@@ -61,6 +62,7 @@ __all__ = [
     "mixture_renyi_entropy",
     "modulate",
     "modulated_velocity",
+    "modulated_velocity_unchecked",
     "modulation_matrix",
     "pair_factors",
     "pairwise_log_overlap",

@@ -78,6 +78,7 @@ __all__ = [
     "Modulation",
     "ModulationResult",
     "modulated_velocity",
+    "modulated_velocity_unchecked",
 ]
 
 #: Modes of :class:`Modulation`: ``none`` (M = I), ``large`` (large-scale branch only), ``small`` (small-scale
@@ -213,6 +214,31 @@ def modulated_velocity(
     limit = check_lambda_limit(lambda_limit)
     kappa = _check_radial_floor(radial_floor)
     _check_vectors(x, f, attractor)
+    own = other = h = ref = None
+    if mode in ("large", "full"):
+        own = _as_batch(log_p_own, "log_p_own", x, mode)
+        other = _as_batch(log_p_other, "log_p_other", x, mode)
+    if mode in ("small", "full"):
+        h = _as_batch(h2, "h2", x, mode)
+        ref = _as_batch(h2_ref, "h2_ref", x, mode)
+    return modulated_velocity_unchecked(x, f, attractor, own, other, h, ref, mode, limit, kappa)
+
+
+def modulated_velocity_unchecked(
+    x: Tensor,
+    f: Tensor,
+    attractor: Tensor,
+    log_p_own: Tensor | None,
+    log_p_other: Tensor | None,
+    h2: Tensor | None,
+    h2_ref: Tensor | None,
+    mode: str,
+    lambda_limit: float,
+    radial_floor: float,
+) -> ModulationResult:
+    """The computation of :func:`modulated_velocity` without its argument checks, for callers that validated the
+    inputs once (a control loop's hot path): tensors of the batch shape (or broadcastable), a valid ``mode``,
+    ``lambda_limit`` and ``radial_floor``."""
     batch = x.shape[:-1]
     branch = torch.full(batch, int(Branch.UNMODULATED), dtype=torch.int8, device=x.device)
     if mode == "none":
@@ -220,21 +246,17 @@ def modulated_velocity(
 
     unit, r = goal_direction(x, attractor)
     c = radial_component(f, unit)
-    a = torch.maximum(c.abs(), kappa * torch.linalg.vector_norm(f, dim=-1))  # floored radial magnitude
+    a = torch.maximum(c.abs(), radial_floor * torch.linalg.vector_norm(f, dim=-1))  # floored radial magnitude
     out = f.clone()
 
     if mode in ("large", "full"):
-        own = _as_batch(log_p_own, "log_p_own", x, mode)
-        other = _as_batch(log_p_other, "log_p_other", x, mode)
-        outside = own < other
-        s = large_scale_gain(own, other, limit)
+        outside = log_p_own < log_p_other
+        s = large_scale_gain(log_p_own, log_p_other, lambda_limit)
     else:
         outside = torch.zeros(batch, dtype=torch.bool, device=x.device)
     if mode in ("small", "full"):
-        h = _as_batch(h2, "h2", x, mode)
-        ref = _as_batch(h2_ref, "h2_ref", x, mode)
-        uncertain = (h > ref) & ~outside
-        lam_ss = small_scale_factor(h, ref)
+        uncertain = (h2 > h2_ref) & ~outside
+        lam_ss = small_scale_factor(h2, h2_ref)
         small = lam_ss.unsqueeze(-1) * f - a.unsqueeze(-1) * unit
         out = torch.where(uncertain.unsqueeze(-1), small, out)
         branch = torch.where(uncertain, torch.full_like(branch, int(Branch.SMALL_SCALE)), branch)

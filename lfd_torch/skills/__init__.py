@@ -10,11 +10,11 @@ Notation (symbols, shapes, units):
 
 Modules: :mod:`~lfd_torch.skills.library` (skills, learning, persistence), :mod:`~lfd_torch.skills.tree` (the
 py_trees behaviour tree), :mod:`~lfd_torch.skills.engine` (decisions, batched ticks, rollouts),
-:mod:`~lfd_torch.skills.arrival` (bounded arrival time), :mod:`~lfd_torch.skills.disturbances` (random pushes),
+:mod:`~lfd_torch.skills.arrival` (bounded arrival time: rate floor, speed cap), :mod:`~lfd_torch.skills.disturbances` (random pushes),
 :mod:`~lfd_torch.skills.stability` (dV/dt < 0 on samples, every step and mode).
 """
 
-from lfd_torch.skills.arrival import Arrival, speed_band
+from lfd_torch.skills.arrival import Arrival, rate_floor, speed_cap
 from lfd_torch.skills.disturbances import PUSH_KINDS, PushPlan, random_pushes
 from lfd_torch.skills.engine import Decision, EngineRollout, SkillEngine, TickResult
 from lfd_torch.skills.library import LIBRARY_SCHEMA, Skill, SkillLibrary, default_fitter
@@ -38,6 +38,7 @@ __all__ = [
     "check_stability",
     "default_fitter",
     "random_pushes",
-    "speed_band",
+    "rate_floor",
+    "speed_cap",
     "stability_samples",
 ]

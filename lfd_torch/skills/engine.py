@@ -9,7 +9,7 @@ m = routes[r][j]. A tick
   3. chooses the branch: x in A_m (log p(x|A_m) >= log p(x|A_m-)) -> the primitive with the small-scale
      modulation, else the large-scale recovery (what each branch does in mode ``none``/``large``/``small``/``full``
      is in :mod:`lfd_torch.modulation.policy`);
-  4. returns u = alpha(x) M(x) f_m(x) (speed band of :mod:`~lfd_torch.skills.arrival`).
+  4. returns u = cap(M(x) f_m(x) + delta) (rate floor and speed cap of :mod:`~lfd_torch.skills.arrival`).
 
 The behaviour tree of :mod:`~lfd_torch.skills.tree` is the source of these decisions for a single state
 (:meth:`SkillEngine.tick`); :meth:`SkillEngine.decide` is its vectorised equivalent for B states, which a test checks
@@ -31,13 +31,16 @@ import torch
 from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError
-from lfd_torch.modulation import Branch, Modulation, modulated_velocity
+from lfd_torch.modulation import Branch, Modulation, modulated_velocity_unchecked
 from lfd_torch.rollout import Disturbance, RolloutResult, rollout
-from lfd_torch.skills.arrival import Arrival, speed_band
+from lfd_torch.skills.arrival import Arrival, rate_floor, speed_cap
 from lfd_torch.skills.library import SkillLibrary
 from lfd_torch.skills.stack import PrimitiveStack
 
-__all__ = ["Decision", "EngineRollout", "SkillEngine", "TickResult"]
+__all__ = ["CHUNK", "Decision", "EngineRollout", "SkillEngine", "TickResult"]
+
+#: Rows per block in batched evaluations (the Gaussians x rows intermediates of a block stay in the CPU cache).
+CHUNK = 512
 
 
 class Decision(NamedTuple):
@@ -108,7 +111,7 @@ class SkillEngine:
         library: the skills, their segmentation (routes, subtask spaces) and thresholds.
         modulation: a :class:`~lfd_torch.modulation.Modulation` or its mode name (``none``, ``large``, ``small``,
             ``full``).
-        arrival: step completion ball and speed band (:class:`~lfd_torch.skills.arrival.Arrival`).
+        arrival: step completion ball, rate floor and speed cap (:class:`~lfd_torch.skills.arrival.Arrival`).
 
     Attributes:
         tree: the py_trees behaviour tree (:class:`~lfd_torch.skills.tree.SkillTree`).
@@ -138,8 +141,9 @@ class SkillEngine:
         span = library.span
         self.arrival_radius = self.arrival.radius * span
         self._slow_radius = self.arrival.slow_radius * span
-        self._v_lo = torch.tensor([self.arrival.min_speed * s.speed for s in library.skills], **f)
         self._v_hi = torch.tensor([self.arrival.max_speed * s.speed for s in library.skills], **f)
+        self._rate = torch.tensor([self.arrival.min_rate / max(s.duration, 1e-9) for s in library.skills], **f)
+        self._P = torch.stack([s.primitive.P.to(**f) for s in library.skills])
         self._h2_ref = torch.stack([s.h2_ref.to(**f) for s in library.skills])
         finals = self.goals[self._route_steps[torch.arange(len(routes)), self._route_len - 1]]
         if not torch.allclose(finals, finals[:1].expand_as(finals)):
@@ -169,29 +173,32 @@ class SkillEngine:
         """(B, M) log p(x|A_m) (``Segmentation.log_density``)."""
         return self.segmentation.log_density(x)
 
-    def own_other(self, x: Tensor, step: Tensor) -> tuple[Tensor, Tensor]:
-        """log p(x|A_m) and log p(x|A_m-) of the given steps: (B,) each, from one density evaluation."""
-        ld = self.log_density(x)  # (B, M)
+    def own_other(self, x: Tensor, step: Tensor, ld: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """log p(x|A_m) and log p(x|A_m-) of the given steps: (B,) each, from one density evaluation (``ld``:
+        precomputed (B, M) :meth:`log_density`)."""
+        ld = self.log_density(x) if ld is None else ld  # (B, M)
         own = ld.gather(-1, step.unsqueeze(-1)).squeeze(-1)
         other = ld.scatter(-1, step.unsqueeze(-1), -math.inf).amax(-1) if ld.shape[-1] > 1 else torch.full_like(own, -math.inf)
         return own, other
 
-    def choose_route(self, x: Tensor) -> Tensor:
+    def choose_route(self, x: Tensor, ld: Tensor | None = None) -> Tensor:
         """(B,) route whose first subtask space is the most likely at x (the first such route on ties)."""
         if len(self.routes) == 1:
             return torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
-        ld = self.log_density(x)[:, self._first]  # (B, R)
-        return ld.argmax(-1)
+        ld = self.log_density(x) if ld is None else ld
+        return ld[:, self._first].argmax(-1)  # (B, R) -> (B,)
 
     def reached(self, x: Tensor, step: Tensor) -> Tensor:
         """(B,) bool: ||x - g_m|| < r_a."""
         e = x - self.goals[step]
         return (e * e).sum(-1) < self.arrival_radius**2
 
-    def advance(self, x: Tensor, route: Tensor, index: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def advance(
+        self, x: Tensor, route: Tensor, index: Tensor, ld: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """Route choice (rows with route < 0) and step completion; returns route, index, done (B,)."""
         if bool((route < 0).any()):
-            route = torch.where(route < 0, self.choose_route(x), route)
+            route = torch.where(route < 0, self.choose_route(x, ld), route)
         length = self._route_len[route]
         for _ in range(self._route_steps.shape[1]):
             active = index < length
@@ -215,18 +222,33 @@ class SkillEngine:
             route: (B,) long route, -1 (or None for all) where it is still to be chosen.
             index: (B,) long progress in the route (None: 0).
         """
-        x = self._check_x(x)
+        return self._decide(self._check_x(x), route, index)[0]
+
+    def _decide(
+        self, x: Tensor, route: Tensor | None, index: Tensor | None
+    ) -> tuple[Decision, tuple[Tensor, Tensor]]:
+        """:meth:`decide` on checked states, with the (own, other) log densities it used; rows in chunks."""
         B = x.shape[0]
         dev = x.device
         route = torch.full((B,), -1, dtype=torch.long, device=dev) if route is None else route.to(dev).long()
         index = torch.zeros(B, dtype=torch.long, device=dev) if index is None else index.to(dev).long()
-        route, index, done = self.advance(x, route, index)
+        if B > CHUNK:
+            parts = [self._decide(x[i : i + CHUNK], route[i : i + CHUNK], index[i : i + CHUNK]) for i in range(0, B, CHUNK)]
+            dec = Decision(*(torch.cat([p[0][f] for p in parts]) for f in range(len(Decision._fields))))
+            return dec, (torch.cat([p[1][0] for p in parts]), torch.cat([p[1][1] for p in parts]))
+        ld = self.log_density(x)
+        route, index, done = self.advance(x, route, index, ld)
         step = self.active_step(route, index)
-        own, other = self.own_other(x, step)
-        return Decision(route, index, step, done, (own >= other) & ~done)
+        own, other = self.own_other(x, step, ld)
+        return Decision(route, index, step, done, (own >= other) & ~done), (own, other)
 
     def velocity(
-        self, x: Tensor, step: Tensor, done: Tensor, inside: Tensor | None = None
+        self,
+        x: Tensor,
+        step: Tensor,
+        done: Tensor,
+        inside: Tensor | None = None,
+        densities: tuple[Tensor, Tensor] | None = None,
     ) -> tuple[Tensor, Tensor]:
         """Commanded velocity and branch of B states in their active steps (all steps at once,
         :class:`~lfd_torch.skills.stack.PrimitiveStack`).
@@ -236,25 +258,34 @@ class SkillEngine:
             step: (B,) long active steps.
             done: (B,) bool rows whose task is complete (velocity 0, branch AT_GOAL).
             inside: (B,) bool x in A_m, as decided by the tree; None evaluates it here.
+            densities: precomputed (log p(x|A_m), log p(x|A_m-)), (B,) each.
 
         Returns:
             (B, d) velocities (units/s) and (B,) int8 branches.
         """
+        B = x.shape[0]
+        if B > CHUNK:  # row blocks keep the (Gaussians x rows) intermediates in cache: several times faster
+            parts = [
+                self.velocity(x[i : i + CHUNK], step[i : i + CHUNK], done[i : i + CHUNK],
+                              None if inside is None else inside[i : i + CHUNK],
+                              None if densities is None else (densities[0][i : i + CHUNK], densities[1][i : i + CHUNK]))
+                for i in range(0, B, CHUNK)
+            ]  # fmt: skip
+            return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
         mod = self.modulation
         f, h2 = self._stack.evaluate(x, step, entropy=mod.uses_entropy)
         own = other = None
         if mod.uses_subtask_densities:
-            own, other = self.own_other(x, step)
+            own, other = self.own_other(x, step) if densities is None else densities
             if inside is None:
                 inside = own >= other
             other = torch.where(inside, torch.full_like(other, -math.inf), other)  # the tree's decision rules
         e = x - self.goals[step]  # the modulation is translation invariant: evaluate it around g_m = 0
-        res = modulated_velocity(
-            e, f, self._origin, log_p_own=own, log_p_other=other, h2=h2, h2_ref=self._h2_ref[step], mode=mod.mode,
-            lambda_limit=mod.lambda_limit, radial_floor=mod.radial_floor,
-        )  # fmt: skip
+        res = modulated_velocity_unchecked(e, f, self._origin, own, other, h2, self._h2_ref[step], mod.mode,
+                                           mod.lambda_limit, mod.radial_floor)  # fmt: skip
         r = torch.linalg.vector_norm(e, dim=-1)
-        u = speed_band(res.velocity, r, self._v_lo[step], self._v_hi[step], self._slow_radius)
+        u = rate_floor(res.velocity, e, self._P[step], self._rate[step])
+        u = speed_cap(u, r, self._v_hi[step], self._slow_radius)
         u = torch.where(done.unsqueeze(-1), torch.zeros_like(u), u)
         branch = torch.where(done, torch.full_like(res.branch, int(Branch.AT_GOAL)), res.branch)
         return u, branch
@@ -272,8 +303,9 @@ class SkillEngine:
 
     def step_batch(self, x: Tensor, route: Tensor | None = None, index: Tensor | None = None) -> tuple[Tensor, Decision, Tensor]:
         """Batched tick for B robots: velocities (B, d), the decisions (new progress) and branches (B,)."""
-        dec = self.decide(x, route, index)
-        v, branch = self.velocity(x.to(**self._f), dec.step, dec.done, dec.inside)
+        x = self._check_x(x)
+        dec, densities = self._decide(x, route, index)
+        v, branch = self.velocity(x, dec.step, dec.done, dec.inside, densities)
         return v, dec, branch
 
     def rollout(

@@ -45,7 +45,7 @@ _KIND = "lfd_torch.SkillLibrary"
 _MANIFEST = "manifest.json"
 
 #: The step's typical speed is this quantile of its demonstrated speeds (a step that starts or ends at rest has a
-#: low median; the engine's speed band is relative to the speed at which the step is actually performed).
+#: low median; the engine's speed cap is relative to the speed at which the step is actually performed).
 SPEED_QUANTILE = 0.9
 
 Fitter = Callable[..., StablePrimitive]
@@ -68,7 +68,8 @@ class Skill:
         h2_ref: 0-d threshold H2(x_r) of the small-scale modulation.
         train_positions: (N_m, d) positions of the step's training samples (without the appended g_m).
         speed: typical demonstrated speed of the step (the :data:`SPEED_QUANTILE` quantile), units/s (reference of
-            the engine's speed band).
+            the engine's speed cap).
+        duration: median duration of the step's pieces, s (time scale of the engine's convergence rate).
     """
 
     step: int
@@ -76,6 +77,7 @@ class Skill:
     h2_ref: Tensor
     train_positions: Tensor
     speed: float
+    duration: float
 
     @property
     def attractor(self) -> Tensor:
@@ -91,14 +93,16 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def _step_pieces(pieces: Demos) -> tuple[Tensor, float]:
-    """Training positions (without the appended attractor sample) and typical speed of one step's pieces."""
+def _step_pieces(pieces: Demos) -> tuple[Tensor, float, float]:
+    """Training positions (without the appended attractor sample), typical speed and median duration (s) of one
+    step's pieces."""
     keep = pieces.mask.clone()
     last = (pieces.lengths - 1).clamp_min(0)
     keep[torch.arange(pieces.n_demos, device=keep.device), last] = False  # the appended g_m
     x = pieces.positions[keep]
     speed = torch.linalg.vector_norm(pieces.velocities[keep], dim=-1)
-    return x, float(speed.quantile(SPEED_QUANTILE)) if speed.numel() else 0.0
+    durations = pieces.times[torch.arange(pieces.n_demos, device=keep.device), last] - pieces.times[:, 0]
+    return x, float(speed.quantile(SPEED_QUANTILE)) if speed.numel() else 0.0, float(durations.median())
 
 
 @dataclass(frozen=True, eq=False)
@@ -225,9 +229,9 @@ class SkillLibrary:
                         raise type(exc)(f"step {m}: {exc}") from exc
                     raise
                 fitted.append(m)
-            x_m, speed = _step_pieces(part)
+            x_m, speed, duration = _step_pieces(part)
             h2 = reference_entropy(prim, x_m, entropy_quantile)
-            skills.append(Skill(m, prim, h2.detach(), x_m.detach(), speed))
+            skills.append(Skill(m, prim, h2.detach(), x_m.detach(), speed, duration))
         x_all = demos.samples()[0]
         span = float((x_all.amax(0) - x_all.amin(0)).max())
         lib = cls(segmentation, tuple(skills), entropy_quantile, span, None, {"fitted_steps": fitted})
@@ -254,7 +258,7 @@ class SkillLibrary:
             raise ShapeMismatchError(f"the primitive's attractor {prim.attractor.tolist()} is not g_{m}")
         h2 = reference_entropy(prim, old.train_positions, self.entropy_quantile)
         skills = list(self.skills)
-        skills[m] = Skill(m, prim, h2.detach(), old.train_positions, old.speed)
+        skills[m] = Skill(m, prim, h2.detach(), old.train_positions, old.speed, old.duration)
         return dataclasses.replace(self, skills=tuple(skills), stability=None)
 
     # ------------------------------------------------------------------ persistence
@@ -277,6 +281,7 @@ class SkillLibrary:
             "h2_ref": torch.stack([s.h2_ref.cpu() for s in self.skills]),
             "train_positions": [s.train_positions.cpu() for s in self.skills],
             "speed": torch.tensor([s.speed for s in self.skills], dtype=torch.float64),
+            "duration": torch.tensor([s.duration for s in self.skills], dtype=torch.float64),
         })  # fmt: skip
         manifest = {
             "kind": _KIND,
@@ -284,7 +289,8 @@ class SkillLibrary:
             "n_steps": self.n_steps,
             "dim": self.dim,
             "steps": [{"step": s.step, "file": f"step_{s.step}.pt", "kind": s.primitive.kind,
-                       "attractor": s.attractor.tolist(), "h2_ref": float(s.h2_ref), "speed": s.speed}
+                       "attractor": s.attractor.tolist(), "h2_ref": float(s.h2_ref), "speed": s.speed,
+                       "duration": s.duration}
                       for s in self.skills],  # fmt: skip
             "routes": [list(r) for r in self.routes],
             "entropy_quantile": self.entropy_quantile,
@@ -339,14 +345,14 @@ class SkillLibrary:
         seg = Segmentation.load(root / "segmentation.pt")
         try:
             extra = torch.load(root / "skills.pt", map_location="cpu", weights_only=True)
-            h2, xs, speed = extra["h2_ref"], extra["train_positions"], extra["speed"]
+            h2, xs, speed, duration = extra["h2_ref"], extra["train_positions"], extra["speed"], extra["duration"]
         except Exception as exc:
             raise StoreError(f"cannot read {root / 'skills.pt'}: {exc}") from exc
         skills = []
         for m in range(n_steps):
             prim = load_primitive(root / f"step_{m}.pt", dtype=dtype, device=device)
             f = {"dtype": prim.dtype, "device": prim.device}
-            skills.append(Skill(m, prim, h2[m].to(**f), xs[m].to(**f), float(speed[m])))
+            skills.append(Skill(m, prim, h2[m].to(**f), xs[m].to(**f), float(speed[m]), float(duration[m])))
         if dtype is not None or device is not None:
             seg = _segmentation_to(seg, skills[0].primitive.dtype, skills[0].primitive.device)
         try:

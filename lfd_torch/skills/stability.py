@@ -1,7 +1,7 @@
 """Numerical stability check of the engine's commanded field, every step and every modulation mode (eqs 19-21).
 
 For step m with Lyapunov matrix P_m and attractor g_m, the engine commands u_m(x) = alpha(x) M(x) f_m(x)
-(modulation and speed band). The check samples states in three regions,
+(modulation, rate floor, speed cap). The check samples states in three regions,
 
 * a box around the data: the bounding box of all training positions, grown by ``box_scale`` about its centre;
 * near g_m: uniform in the ball of radius ``near_radius`` x span around g_m (where the radial floor and the c = 0

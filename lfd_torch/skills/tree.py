@@ -55,6 +55,7 @@ class _Context:
         self.index = 0
         self.velocity: Tensor | None = None
         self.branch = Branch.AT_GOAL
+        self.densities: dict[int, tuple[Tensor, Tensor]] = {}  # step -> (log p(x|A_m), log p(x|A_m-)) this tick
 
 
 class DecisionVisitor(py_trees.visitors.VisitorBase):
@@ -112,6 +113,7 @@ class InSubtask(_Leaf):
 
     def update(self) -> Status:
         own, other = self.ctx.engine.own_other(self.ctx.x, self._step_t)
+        self.ctx.densities[int(self._step_t)] = (own, other)
         return Status.SUCCESS if bool(own[0] >= other[0]) else Status.FAILURE
 
 
@@ -126,7 +128,7 @@ class _Drive(_Leaf):
 
     def update(self) -> Status:
         c = self.ctx
-        v, branch = c.engine.velocity(c.x, self._step_t, self._done, self._inside)
+        v, branch = c.engine.velocity(c.x, self._step_t, self._done, self._inside, c.densities.get(int(self._step_t)))
         c.velocity, c.branch = v[0], Branch(int(branch[0]))
         return Status.RUNNING
 
@@ -189,6 +191,7 @@ class SkillTree:
         c.x = x.to(**eng._f).reshape(1, -1)
         c.route, c.index = self._progress(step, route)
         c.velocity, c.branch = None, Branch.AT_GOAL
+        c.densities = {}
         self.tree.tick()
         done = self.root.status is Status.SUCCESS
         if done:
