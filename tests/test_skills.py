@@ -429,3 +429,15 @@ def test_stacked_evaluation_equals_each_primitive(l_library: SkillLibrary) -> No
         rows = step == m
         assert torch.allclose(f[rows], s.primitive(x[rows]), rtol=1e-10, atol=1e-12)
         assert torch.allclose(h2[rows], renyi_entropy(s.primitive, x[rows]), rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.skipif(not __import__("shutil").which("g++"), reason="torch.compile needs a C++ compiler")
+def test_compiled_tick_equals_the_eager_tick(l_library: SkillLibrary) -> None:
+    eager = SkillEngine(l_library, "full")
+    compiled = SkillEngine(l_library, "full", compile_tick=True)
+    x, route, index = _random_pairs(l_library, 40, torch.Generator().manual_seed(9))
+    for i in range(x.shape[0]):
+        step = l_library.routes[int(route[i])][int(index[i])]
+        a, b = eager.tick(x[i], step=step), compiled.tick(x[i], step=step)
+        assert (a.step, a.done, a.branch) == (b.step, b.done, b.branch)
+        assert torch.allclose(a.velocity, b.velocity, rtol=1e-12, atol=1e-12)

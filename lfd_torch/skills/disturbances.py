@@ -64,8 +64,13 @@ class PushPlan:
         """The last sample at which a push acts (-1 without pushes)."""
         return int(self.steps.max()) if self.steps.numel() else -1
 
+    def __post_init__(self) -> None:
+        self._samples = frozenset(self.steps.reshape(-1).tolist())
+
     def apply(self, k: int, x: Tensor, engine: SkillEngine, state: dict[str, Tensor]) -> Tensor | None:
         """The displaced (B, d) state after the pushes scheduled at sample k, or None when none acts."""
+        if k not in self._samples:
+            return None
         hit = (self.steps == k) & ~state["done"].unsqueeze(-1).to(self.steps.device)
         if not bool(hit.any()):
             return None

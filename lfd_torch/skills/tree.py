@@ -109,11 +109,12 @@ class Reached(_Leaf):
 class InSubtask(_Leaf):
     def __init__(self, ctx: _Context, step: int):
         super().__init__(f"InSubtask {step}", ctx)
+        self.step = step
         self._step_t = torch.tensor([step], device=ctx.engine.goals.device)
 
     def update(self) -> Status:
         own, other = self.ctx.engine.own_other(self.ctx.x, self._step_t)
-        self.ctx.densities[int(self._step_t)] = (own, other)
+        self.ctx.densities[self.step] = (own, other)
         return Status.SUCCESS if bool(own[0] >= other[0]) else Status.FAILURE
 
 
@@ -122,13 +123,14 @@ class _Drive(_Leaf):
 
     def __init__(self, name: str, ctx: _Context, step: int):
         super().__init__(f"{name} {step}", ctx)
+        self.step = step
         self._step_t = torch.tensor([step], device=ctx.engine.goals.device)
         self._done = torch.zeros(1, dtype=torch.bool, device=ctx.engine.goals.device)
         self._inside = torch.full((1,), self.inside, dtype=torch.bool, device=ctx.engine.goals.device)
 
     def update(self) -> Status:
         c = self.ctx
-        v, branch = c.engine.velocity(c.x, self._step_t, self._done, self._inside, c.densities.get(int(self._step_t)))
+        v, branch = c.engine.tick_velocity(c.x, self._step_t, self._done, self._inside, c.densities.get(self.step))
         c.velocity, c.branch = v[0], Branch(int(branch[0]))
         return Status.RUNNING
 

@@ -1,0 +1,120 @@
+"""Benchmark of the skill decision engine (not a test; prints medians, optionally writes JSON).
+
+    python experiments/bench_engine.py [--shape Multi_Models_3] [--training all] [--repeats 7] [--dtype float64]
+                                       [--json results/tables/bench_engine.json]
+
+On a library learned from LASA ``--shape`` (all seven demonstrations by default: 2 routes, ~16-18 steps):
+1. single-state tick through the py_trees tree (route, step completion, subtask test, primitive, entropy,
+   modulation, rate floor and speed cap), mode ``full``: median over 2,000 ticks of states along the demonstrations,
+   with the velocity compiled (``SkillEngine(compile_tick=True)``, unless ``--no-compile``) and eager
+   (goal: <= 200 us, a 5 kHz control loop);
+2. batched tick of 10,000 states (vectorised decisions + velocities), mode ``full`` (goal: <= 10 ms);
+3. 1,000-start full-task rollout with random large and small pushes, dt = 10 ms, 60 s budget, mode ``full``
+   (goal: <= 5 s), with the fraction of rows that finished and the median / max task time.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from lfd_torch.data import load_lasa
+from lfd_torch.segmentation import segment
+from lfd_torch.skills import SkillEngine, SkillLibrary, random_pushes
+from lfd_torch.store import atomic_write
+from lfd_torch.utils import derive_seed
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--shape", default="Multi_Models_3")
+    ap.add_argument("--training", choices=["one", "all"], default="all")
+    ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--dtype", choices=["float32", "float64"], default="float64")
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--no-compile", action="store_true", help="eager single-state tick (no torch.compile)")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    dtype = getattr(torch, args.dtype)
+
+    demos = load_lasa(args.shape)
+    train = demos[[0]] if args.training == "one" else demos
+    g = torch.Generator().manual_seed(derive_seed("bench_engine", args.shape, args.training))
+    seg = segment(train, generator=g)
+    lib = SkillLibrary.learn(train, seg, generator=g, check=False)
+    if dtype != torch.float64:  # learn in float64, run the engine in the requested dtype
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            lib.save(tmp)
+            lib = SkillLibrary.load(tmp, dtype=dtype)
+    eng = SkillEngine(lib, "full")
+    tick_eng = eng if args.no_compile else SkillEngine(lib, "full", compile_tick=True)
+    out: dict = {"shape": args.shape, "training": args.training, "dtype": args.dtype, "steps": lib.n_steps,
+                 "routes": len(lib.routes), "threads": args.threads,
+                 "tick_compiled": not args.no_compile}  # fmt: skip
+
+    # 1. single-state tick
+    xs = demos.samples()[0].to(dtype)
+    idx = torch.randperm(xs.shape[0], generator=torch.Generator().manual_seed(0))[:2000]
+    states = xs[idx]
+    step0 = lib.routes[0][0]
+    for name, e in (("tick_us_median_eager", eng), ("tick_us_median", tick_eng)):
+        for x in states[:50]:
+            e.tick(x, step=step0)
+        times = []
+        for x in states:
+            t0 = time.perf_counter()
+            e.tick(x, step=step0)
+            times.append(time.perf_counter() - t0)
+        out[name] = 1e6 * statistics.median(times)
+
+    # 2. batched tick of 10,000 states
+    x_all = demos.samples()[0].to(dtype)
+    lo, hi = x_all.amin(0), x_all.amax(0)
+    c, h = 0.5 * (lo + hi), (hi - lo)
+    X = c + h * (2 * torch.rand((10_000, lib.dim), generator=torch.Generator().manual_seed(1), dtype=dtype) - 1)
+    eng.step_batch(X)
+    times = []
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        eng.step_batch(X)
+        times.append(time.perf_counter() - t0)
+    out["batch_10k_ms_median"] = 1e3 * statistics.median(times)
+
+    # 3. 1,000-start rollout with pushes
+    B = 1000
+    x0 = c + h * (2 * torch.rand((B, lib.dim), generator=torch.Generator().manual_seed(2), dtype=dtype) - 1)
+    times, res = [], None
+    for r in range(max(1, args.repeats // 2)):
+        plan = random_pushes(B, generator=torch.Generator().manual_seed(3), n_pushes=2, window=(50, 500),
+                             magnitude=(0.1 * lib.span, 0.3 * lib.span))  # fmt: skip
+        t0 = time.perf_counter()
+        res = eng.rollout(x0, dt=0.01, n_steps=6000, pushes=plan)
+        times.append(time.perf_counter() - t0)
+    assert res is not None
+    task_t = (res.result.lengths - 1).double() * 0.01
+    out["rollout_1000_s_median"] = statistics.median(times)
+    out["rollout_finished"] = float(res.done.double().mean())
+    out["rollout_task_time_s_median"] = float(task_t.median())
+    out["rollout_task_time_s_max"] = float(task_t.max())
+    out["rollout_samples"] = int(res.result.lengths.max())
+    out["pushes_applied"] = sum(p["applied"] for p in res.pushes)
+    print(json.dumps(out, indent=2))
+    if args.json is not None:
+        atomic_write(args.json, lambda p: p.write_text(json.dumps(out, indent=2) + "\n"))
+    return out
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,298 @@
+"""LASA multi-step tasks through the whole framework: segmentation -> skill library -> decision engine.
+
+For every shape (Multi_Models_1..4 by default) and training set (``one``: demonstration ``train_demo``, the paper's
+protocol; ``all``: the seven), the demonstrations are segmented (BP-GM-HMM, no number of steps given), one P-QLF
+LPV-DS is learned per step, and the engine runs B robots in each mode (``none``, ``full``) from four kinds of
+starts:
+
+* ``demo``: the starts of the seven demonstrations (no pushes);
+* ``random``: uniform in a box twice the data span, with random large and small pushes during the run;
+* ``outside``: random box starts outside the first subtask space of their route (large-scale recovery);
+* ``inside``: random starts inside it but at least ``inside_min_distance`` x span from every demonstration
+  (small-scale modulation).
+
+One row per (shape, training, start kind, mode, start): finished, time to finish (s), path length, final error,
+DTWD and E3 to the nearest demonstration (both paths resampled to ``n_resample`` points by arc length, so that E3
+pairs points at equal path fractions), and for ``outside`` starts the samples and path length until the robot is
+back inside its active subtask space. Figures (paper Figs 5-8) and the behaviour tree (Fig. 3) go to the job
+folder, and with ``publish=true`` (preset ``+experiment=lasa_tasks_publish``) to ``paths.figures``; a summary table
+of the comparisons goes beside the results.
+
+    python experiments/lasa_tasks.py
+    python experiments/lasa_tasks.py shapes=[Multi_Models_3] n_random=200
+    python experiments/lasa_tasks.py +experiment=lasa_tasks_publish         # README figures and tables
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import hydra
+import pandas as pd
+import torch
+
+torch.set_num_threads(1)  # the busy-waiting default pool is ~10x slower on a loaded 2-core box
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from lfd_torch.data import Demos, load_lasa
+from lfd_torch.metrics import dtw_distance, swept_area
+from lfd_torch.modulation import Branch, Modulation
+from lfd_torch.preprocess.regularize import resample
+from lfd_torch.segmentation import FixedSegmenter, NoSegmenter
+from lfd_torch.skills import SkillEngine, SkillLibrary, random_pushes
+from lfd_torch.skills.plot import plot_entropy, plot_rollout_panels
+from lfd_torch.store import atomic_write, run_manifest, write_table
+from lfd_torch.utils import derive_seed
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------------------------- starts
+def _box(demos: Demos, scale: float) -> tuple[torch.Tensor, torch.Tensor]:
+    x = demos.samples()[0]
+    lo, hi = x.amin(0), x.amax(0)
+    return 0.5 * (lo + hi), 0.5 * scale * (hi - lo)
+
+
+def _uniform(centre: torch.Tensor, half: torch.Tensor, n: int, gen: torch.Generator) -> torch.Tensor:
+    u = torch.rand((n, centre.numel()), generator=gen, dtype=centre.dtype)
+    return centre + half * (2 * u - 1)
+
+
+def starts(engine: SkillEngine, demos: Demos, cfg: DictConfig, gen: torch.Generator) -> dict[str, torch.Tensor]:
+    """The four kinds of start states (module docstring)."""
+    centre, half = _box(demos, 2.0)
+    x_demo = demos.samples()[0]
+    span = engine.library.span
+    pool = _uniform(centre, half, 20 * int(cfg.n_random), gen)
+    dec = engine.decide(pool)
+    near = torch.cdist(pool, x_demo).amin(-1)
+    outside = pool[~dec.inside & ~dec.done]
+    inside = pool[dec.inside & (near >= cfg.inside_min_distance * span)]
+    n = int(cfg.n_random)
+    return {
+        "demo": demos.start_points.clone(),
+        "random": pool[:n],
+        "outside": outside[:n],
+        "inside": inside[:n],
+    }
+
+
+# ---------------------------------------------------------------------------------------------- metrics
+def path_length(x: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+    """(B,) length of each valid prefix of (B, T, d) paths."""
+    seg = torch.linalg.vector_norm(x[:, 1:] - x[:, :-1], dim=-1)
+    valid = torch.arange(seg.shape[1]).unsqueeze(0) < (lengths - 1).unsqueeze(1)
+    return (seg * valid).sum(-1)
+
+
+def nearest_demo_metrics(out: Any, demos: Demos, n_resample: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """DTWD and E3 of every rollout to its nearest demonstration (by DTWD), on arc-length resampled paths."""
+    rolls = resample(out.result.to_demos(), n_resample, "arc_length").positions  # (B, Q, d)
+    refs = resample(demos, n_resample, "arc_length").positions  # (N, Q, d)
+    B, N = rolls.shape[0], refs.shape[0]
+    a = rolls.repeat_interleave(N, 0)
+    b = refs.repeat(B, 1, 1)
+    dtw = dtw_distance(a, b).view(B, N)
+    best = dtw.argmin(-1)
+    e3 = swept_area(rolls, refs[best])
+    return dtw.gather(-1, best.unsqueeze(-1)).squeeze(-1), e3
+
+
+def recovery(engine: SkillEngine, out: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    """Samples until the robot is first inside its active subtask space, and the path length until then (inf if
+    never)."""
+    res = out.result
+    B, T, d = res.positions.shape
+    x = res.positions.reshape(-1, d)
+    step = out.steps.reshape(-1)
+    own, other = engine.own_other(x, step)
+    inside = ((own >= other).view(B, T) | (out.branches == int(Branch.AT_GOAL))) & res.mask
+    first = torch.where(inside.any(-1), inside.to(torch.int8).argmax(-1), torch.full((B,), T))
+    lengths = (first + 1).clamp(max=T)
+    dist = path_length(res.positions, lengths)
+    never = first >= T
+    return first.double().masked_fill(never, math.inf), dist.masked_fill(never, math.inf)
+
+
+# ---------------------------------------------------------------------------------------------- one task
+def learn(cfg: DictConfig, demos: Demos, segmenter: Any, seed_parts: tuple) -> tuple[SkillLibrary, float]:
+    g = torch.Generator().manual_seed(derive_seed(*seed_parts))
+    t0 = time.perf_counter()
+    seg = segmenter(demos, generator=g)
+    lib_cfg = OmegaConf.to_container(cfg.skills.library, resolve=True)
+    assert isinstance(lib_cfg, dict)
+    lib = SkillLibrary.learn(demos, seg, primitive=instantiate(cfg.ds), generator=g, **lib_cfg)
+    return lib, time.perf_counter() - t0
+
+
+def run_task(cfg: DictConfig, shape: str, training: str, out_dir: Path) -> tuple[list[dict[str, Any]], dict]:
+    demos_all = load_lasa(shape)
+    train = demos_all[[int(cfg.train_demo)]] if training == "one" else demos_all
+    lib, fit_s = learn(cfg, train, instantiate(cfg.segmentation), (cfg.experiment, shape, training, cfg.seed))
+    lib.save(out_dir / "libraries" / f"{shape}_{training}")
+    log.info("%s/%s: %d steps, %d routes, learned in %.1f s, stability %s", shape, training, lib.n_steps,
+             len(lib.routes), fit_s, lib.stability and lib.stability["passed"])  # fmt: skip
+    arrival = instantiate(cfg.skills.arrival)
+    mod_kw = {k: v for k, v in OmegaConf.to_container(cfg.modulation, resolve=True).items() if k not in ("_target_", "mode")}
+    engines = {mode: SkillEngine(lib, Modulation(mode=mode, **mod_kw), arrival) for mode in cfg.modes}
+    gen = torch.Generator().manual_seed(derive_seed(cfg.experiment, shape, training, "starts", cfg.seed))
+    kinds = starts(engines["full"], demos_all, cfg, gen)
+    n_steps = int(round(cfg.budget_s / cfg.dt))
+    rows: list[dict[str, Any]] = []
+    outs: dict[tuple[str, str], Any] = {}
+    for kind, x0 in kinds.items():
+        if x0.shape[0] == 0:
+            log.warning("%s/%s: no %s starts found", shape, training, kind)
+            continue
+        for mode, eng in engines.items():
+            pushes = None
+            if kind == "random":
+                pushes = random_pushes(x0.shape[0], generator=torch.Generator().manual_seed(
+                    derive_seed(cfg.experiment, shape, training, "pushes", cfg.seed)), n_pushes=int(cfg.pushes.n),
+                    window=(int(cfg.pushes.first_s / cfg.dt), int(cfg.pushes.last_s / cfg.dt)),
+                    magnitude=(cfg.pushes.low * lib.span, cfg.pushes.high * lib.span))  # fmt: skip
+            t0 = time.perf_counter()
+            out = eng.rollout(x0, dt=cfg.dt, n_steps=n_steps, pushes=pushes)
+            seconds = time.perf_counter() - t0
+            outs[(kind, mode)] = out
+            res = out.result
+            dtw, e3 = nearest_demo_metrics(out, demos_all, int(cfg.n_resample))
+            rec_samples, rec_path = recovery(eng, out) if kind == "outside" else (None, None)
+            final = res.positions[torch.arange(res.n_starts), res.lengths - 1]
+            err = torch.linalg.vector_norm(final - demos_all.attractor.to(final), dim=-1)
+            plen = path_length(res.positions, res.lengths)
+            n_push = torch.zeros(res.n_starts, dtype=torch.long)
+            for p in out.pushes:
+                n_push[p["row"]] += int(p["applied"])
+            for b in range(res.n_starts):
+                rows.append({
+                    "experiment": cfg.experiment, "shape": shape, "method": f"{training}/{kind}/{mode}", "fold": 0,
+                    "seed": int(cfg.seed), "trajectory": b, "training": training, "starts": kind, "mode": mode,
+                    "n_steps_task": lib.n_steps, "n_routes": len(lib.routes), "route": int(out.routes[b]),
+                    "finished": bool(out.done[b]), "time_s": float(res.lengths[b] - 1) * cfg.dt,
+                    "path_length": float(plen[b]), "final_error": float(err[b]), "DTWD": float(dtw[b]),
+                    "E3": float(e3[b]), "pushes": int(n_push[b]),
+                    "large_share": float((out.branches[b, : res.lengths[b]] == int(Branch.LARGE_SCALE)).double().mean()),
+                    "recovery_samples": math.nan if rec_samples is None else float(rec_samples[b]),
+                    "recovery_path": math.nan if rec_path is None else float(rec_path[b]),
+                    "rollout_s": seconds, "learn_s": fit_s,
+                    "stability_passed": bool(lib.stability["passed"]) if lib.stability else None,
+                    "worst_margin": float(lib.stability["worst_margin"]) if lib.stability else math.nan,
+                })  # fmt: skip
+    return rows, {"library": lib, "outs": outs, "demos": demos_all, "train": train, "engines": engines}
+
+
+# ---------------------------------------------------------------------------------------------- figures
+def figures(cfg: DictConfig, shape: str, tasks: dict[str, dict], fig_dir: Path) -> list[Path]:
+    """Paper Figs 3, 5-8 for one shape (module docstring)."""
+    written = []
+    one, everything = tasks.get("one"), tasks.get("all")
+    base = one or everything
+    assert base is not None
+    lib, demos = base["library"], base["demos"]
+    written.append(plot_entropy(lib, demos, fig_dir / f"lasa_tasks_{shape}_entropy.png",
+                                title=f"{shape}: H2 of each step's primitive (white: H2 = H2(x_r))"))  # fmt: skip
+    # Fig. 6: the same training data with 1, 2, 3 equal steps and with the BP-GM-HMM steps, engine mode none
+    train = base["train"]
+    panels = []
+    x0 = demos.start_points
+    for k in (1, 2, 3):
+        seg = NoSegmenter() if k == 1 else FixedSegmenter([j / k for j in range(1, k)])
+        g = torch.Generator().manual_seed(derive_seed(cfg.experiment, shape, "fig6", k, cfg.seed))
+        lib_k = SkillLibrary.learn(train, seg(train), primitive=instantiate(cfg.ds), generator=g, check=False)
+        out = SkillEngine(lib_k, "none", instantiate(cfg.skills.arrival)).rollout(
+            x0, dt=cfg.dt, n_steps=int(round(cfg.budget_s / cfg.dt)))
+        panels.append((f"{k} step{'s' if k > 1 else ''} (equal time)", lib_k, out))
+    panels.append((f"BP-GM-HMM: {lib.n_steps} steps", lib, base["outs"][("demo", "none")]))
+    written.append(plot_rollout_panels(panels, demos, fig_dir / f"lasa_tasks_{shape}_steps.png",
+                                       title=f"{shape}: LPV-DS with 1, 2, 3 and the model's steps"))  # fmt: skip
+    # Fig. 7: before/after modulation from starts outside and inside a subtask space (5 each)
+    outs = base["outs"]
+    panels = []
+    for kind in ("outside", "inside"):
+        for mode in ("none", "full"):
+            if (kind, mode) in outs:
+                panels.append((f"{kind} A_m, {mode}", lib, outs[(kind, mode)]))
+    if panels:
+        written.append(plot_rollout_panels(panels, demos, fig_dir / f"lasa_tasks_{shape}_modulation.png", max_rows=5,
+                                           title=f"{shape}: before / after modulation (red: large, green: small)"))  # fmt: skip
+    # Fig. 8: complete tasks under random pushes (crosses)
+    panels = [(f"{t}: pushes, {mode}", tk["library"], tk["outs"][("random", mode)])
+              for t, tk in tasks.items() for mode in ("none", "full") if ("random", mode) in tk["outs"]]  # fmt: skip
+    written.append(plot_rollout_panels(panels, demos, fig_dir / f"lasa_tasks_{shape}_pushes.png", max_rows=12,
+                                       title=f"{shape}: whole task under random pushes"))  # fmt: skip
+    # Fig. 3: the behaviour tree built from the segmentation of all demonstrations
+    tree_lib = (everything or base)["engines"]["full"]
+    written.extend(tree_lib.tree.render(fig_dir / f"lasa_tasks_{shape}_tree"))
+    return written
+
+
+def summary(table: pd.DataFrame) -> pd.DataFrame:
+    """The comparisons: per shape and training, none vs full."""
+    rows = []
+    for (shape, training), part in table.groupby(["shape", "training"], sort=False):
+        row: dict[str, Any] = {"shape": shape, "training": training, "steps": int(part.n_steps_task.iloc[0]),
+                               "routes": int(part.n_routes.iloc[0])}  # fmt: skip
+        for mode in ("none", "full"):
+            m = part[part["mode"] == mode]
+            out, ins, rnd = m[m.starts == "outside"], m[m.starts == "inside"], m[m.starts == "random"]
+            row[f"finished_{mode}"] = float(m.finished.mean())
+            row[f"recovery_steps_{mode}"] = float(out.recovery_samples.median()) if len(out) else math.nan
+            row[f"recovery_path_{mode}"] = float(out.recovery_path.median()) if len(out) else math.nan
+            row[f"inside_E3_{mode}"] = float(ins.E3.median()) if len(ins) else math.nan
+            row[f"inside_DTWD_{mode}"] = float(ins.DTWD.median()) if len(ins) else math.nan
+            row[f"pushed_time_s_{mode}"] = float(rnd.time_s.median()) if len(rnd) else math.nan
+            row[f"max_time_s_{mode}"] = float(m.time_s.max())
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    if not isinstance(cfg.seed, int):
+        raise TypeError(f"seed must be an integer, got {cfg.seed!r}")
+    multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    if cfg.publish and multirun:
+        raise ValueError("publish=true in a multirun would let every job overwrite the published results; "
+                         "merge the sweep with `python -m lfd_torch.store.collect` instead")
+    out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(cfg.get("out_dir", "."))
+    manifest = run_manifest(cfg, seed=cfg.seed)
+    rows: list[dict[str, Any]] = []
+    written: list[Path] = []
+    fig_dir = Path(cfg.paths.figures) if cfg.publish else out_dir / "figures"
+    for shape in cfg.shapes:
+        tasks = {}
+        for training in cfg.training:
+            part, task = run_task(cfg, str(shape), str(training), out_dir)
+            rows.extend(part)
+            tasks[str(training)] = task
+        if cfg.figures:
+            written.extend(figures(cfg, str(shape), tasks, fig_dir))
+    table = pd.DataFrame(rows)
+    written.append(write_table(table, out_dir / "results.parquet", manifest=manifest))
+    summ = summary(table)
+    md = summ.to_markdown(index=False, floatfmt=".3g")
+    written.append(atomic_write(out_dir / "summary.md", lambda p: p.write_text(md + "\n")))
+    if cfg.publish:
+        tables = Path(cfg.paths.tables)
+        written.append(write_table(table, tables / f"{cfg.experiment}.parquet", manifest=manifest))
+        written.append(atomic_write(tables / f"{cfg.experiment}.md", lambda p: p.write_text(md + "\n")))
+    log.info("summary:\n%s", md)
+    return {"table": table, "summary": summ, "written": written}
+
+
+@hydra.main(config_path="../conf", config_name="lasa_tasks", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    result = run(cfg)
+    print(result["summary"].to_string(index=False))
+
+
+if __name__ == "__main__":
+    main()
