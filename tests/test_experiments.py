@@ -43,3 +43,27 @@ def test_lasa_metrics_multirun_and_collect(tmp_path):
     # a wider window removes more: the smoothed path moves further from the raw one
     means = merged.groupby("method")["smoothing_area"].mean()
     assert means["savgol-w15"] > means["savgol-w5"]
+
+
+def test_lasa_tasks_run_writes_rows_summary_and_figures(tmp_path):
+    import lasa_tasks
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("lasa_tasks", overrides=["shapes=[Multi_Models_1]", "training=[one]", "n_random=12",
+                                               "budget_s=40", "n_resample=60", f"+out_dir={tmp_path}"])  # fmt: skip
+    result = lasa_tasks.run(cfg)
+    table = pd.read_parquet(tmp_path / "results.parquet")
+    assert set(KEY_COLUMNS) <= set(table.columns) and not table.duplicated(list(KEY_COLUMNS)).any()
+    assert set(table["mode"]) == {"none", "full"} and {"demo", "random"} <= set(table["starts"])
+    assert table["finished"].all() and (table["final_error"] < 1.0).all()
+    rnd = table[table.starts == "random"]
+    assert (rnd["pushes"] > 0).any()
+    out = table[table.starts == "outside"]
+    assert len(out) == 0 or out["recovery_samples"].notna().all()
+    summary = (tmp_path / "summary.md").read_text()
+    assert "Multi_Models_1" in summary and len(result["summary"]) == 1
+    figs = {p.name for p in (tmp_path / "figures").iterdir()}
+    for suffix in ("entropy.png", "steps.png", "modulation.png", "pushes.png", "tree.txt"):
+        assert f"lasa_tasks_Multi_Models_1_{suffix}" in figs
+    lib_dir = tmp_path / "libraries" / "Multi_Models_1_one"
+    assert (lib_dir / "manifest.json").is_file()
