@@ -40,8 +40,8 @@ def _extent(library: Any, demos: Any, margin: float = 0.15) -> tuple[float, floa
 
 
 def plot_entropy(library: Any, demos: Any, path: str | Path, *, grid_size: int = 150, title: str | None = None) -> Path:
-    """One panel per step: H2 of its primitive over the plane (clipped at the 95th percentile of the grid), the
-    step's training states and g_m, and the contour H2 = H2(x_r) (the small-scale threshold)."""
+    """One panel per step: H2 of its primitive over the plane (log colour scale of H2 - min H2 + 1), the step's
+    training states and g_m, and the contour H2 = H2(x_r) (the small-scale threshold)."""
     _check_2d(library)
     x0, x1, y0, y1 = _extent(library, demos)
     f = {"dtype": library.dtype, "device": library.device}
@@ -54,8 +54,9 @@ def plot_entropy(library: Any, demos: Any, path: str | Path, *, grid_size: int =
     for m, skill in enumerate(library.skills):
         ax = axes[m // cols][m % cols]
         h2 = renyi_entropy(skill.primitive, grid.reshape(-1, 2)).reshape(grid_size, grid_size)
-        hi = float(torch.quantile(h2.flatten(), 0.95))
-        ax.imshow(h2.clamp(max=hi).cpu(), origin="lower", extent=(x0, x1, y0, y1), cmap="viridis", aspect="auto")
+        lifted = (h2 - h2.min() + 1.0).cpu()  # >= 1: H2 grows quadratically off the data, a log scale shows both
+        ax.imshow(lifted, origin="lower", extent=(x0, x1, y0, y1), cmap="viridis", aspect="auto",
+                  norm=matplotlib.colors.LogNorm(vmin=1.0, vmax=float(lifted.max())))  # fmt: skip
         ax.contour(gx.cpu(), gy.cpu(), h2.cpu(), levels=[float(skill.h2_ref)], colors="white", linewidths=0.8)
         xs = skill.train_positions.cpu()
         ax.plot(xs[:, 0], xs[:, 1], ".", color="tab:orange", ms=1.5)
