@@ -40,7 +40,7 @@ from lfd_torch.skills.stack import PrimitiveStack
 __all__ = ["CHUNK", "Decision", "EngineRollout", "SkillEngine", "TickResult"]
 
 #: Rows per block in batched evaluations (the Gaussians x rows intermediates of a block stay in the CPU cache).
-CHUNK = 512
+CHUNK = 1024
 
 
 class Decision(NamedTuple):
