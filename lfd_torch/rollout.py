@@ -189,6 +189,34 @@ class RolloutResult:
         """(B, d) last valid state of each row (the stop state for converged rows)."""
         return self.positions[:, -1]
 
+    def positions_at(self, times: Tensor) -> Tensor:
+        """Positions at arbitrary times (s from the start), linear between samples; after a row's last valid sample
+        it stays at its final state.
+
+        Args:
+            times: (B, Q) or (Q,) query times, >= 0.
+
+        Returns:
+            (B, Q, d) positions.
+        """
+        B = self.n_starts
+        t = torch.as_tensor(times, dtype=self.positions.dtype, device=self.positions.device)
+        if t.ndim == 1:
+            t = t.unsqueeze(0).expand(B, -1)
+        if t.ndim != 2 or t.shape[0] != B:
+            raise ShapeMismatchError(f"times must have shape (Q,) or ({B}, Q), got {tuple(t.shape)}")
+        if not bool(torch.isfinite(t).all()) or bool((t < 0).any()):
+            raise NonFiniteError("times must be finite and >= 0")
+        last = (self.lengths - 1).unsqueeze(1).to(t.device)
+        k = torch.minimum((t / self.dt).floor().long(), last)
+        k1 = torch.minimum(k + 1, last)
+        w = (t / self.dt - k).clamp(0, 1).unsqueeze(-1)
+        w = torch.where((k1 == k).unsqueeze(-1), torch.zeros_like(w), w)
+        d = self.dim
+        x0 = self.positions.gather(1, k.unsqueeze(-1).expand(-1, -1, d))
+        x1 = self.positions.gather(1, k1.unsqueeze(-1).expand(-1, -1, d))
+        return x0 + w * (x1 - x0)
+
     def to_demos(self, attractor: Tensor | None = None, names: Sequence[str] = ()) -> Demos:
         """Package the rollouts as :class:`~lfd_torch.data.Demos` (times ``k * dt``), e.g. for metrics.
 

@@ -67,3 +67,28 @@ def test_lasa_tasks_run_writes_rows_summary_and_figures(tmp_path):
         assert f"lasa_tasks_Multi_Models_1_{suffix}" in figs
     lib_dir = tmp_path / "libraries" / "Multi_Models_1_one"
     assert (lib_dir / "manifest.json").is_file()
+
+
+def test_lasa_benchmark_one_training_demo_rows_and_shared_libraries(tmp_path, monkeypatch):
+    import lasa_benchmark
+
+    calls = []
+    learn = lasa_benchmark.SkillLibrary.learn
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return learn(*args, **kwargs)
+
+    monkeypatch.setattr(lasa_benchmark.SkillLibrary, "learn", counting)
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("lasa_benchmark", overrides=["shapes=[Angle]", "fold=2", "segmentations=[none]",
+                                                   "primitives=[lpvds]", f"+out_dir={tmp_path}"])  # fmt: skip
+    result = lasa_benchmark.run(cfg)
+    table = pd.read_parquet(tmp_path / "results.parquet")
+    assert len(calls) == 1  # one library, shared by the two modulation variants
+    assert len(table) == 2 * 7 and not table.duplicated(list(KEY_COLUMNS)).any()
+    assert set(table.method) == {"none+lpvds+none", "none+lpvds+full"}
+    train = table[table.split == "train"]
+    assert set(train.trajectory) == {2} and set(table[table.split == "test"].trajectory) == {0, 1, 3, 4, 5, 6}
+    assert table[["E1", "E2", "E3", "DTWD", "final_error"]].notna().all().all() and table.reached.all()
+    assert len(result["table"]) == len(table)

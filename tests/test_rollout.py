@@ -490,3 +490,21 @@ def test_batched_engine_is_much_faster_than_eager_loop(generator):
     for b in range(n_eager):  # same trajectories
         torch.testing.assert_close(eager[b], res.positions[b, : len(eager[b])], rtol=1e-5, atol=1e-5)
     assert per_start * 2000 / batched > 50  # measured ~400 on the 2-core CI box
+
+
+def test_positions_at_interpolates_and_holds_the_end() -> None:
+    x0 = torch.tensor([[1.0, 0.0], [2.0, 0.0]], dtype=torch.float64)
+    res = rollout(lambda x: -x, x0, 0.1, 50, attractor=torch.zeros(2, dtype=torch.float64), position_tol=0.5,
+                  velocity_tol=float("inf"))  # fmt: skip
+    t = torch.tensor([0.0, 0.05, 0.1, 0.25, 100.0], dtype=torch.float64)
+    got = res.positions_at(t)
+    naive = torch.empty(2, 5, 2, dtype=torch.float64)
+    for b in range(2):
+        n = int(res.lengths[b])
+        for q, tq in enumerate(t.tolist()):
+            k = min(int(tq // 0.1), n - 1)
+            k1 = min(k + 1, n - 1)
+            w = 0.0 if k1 == k else (tq - k * 0.1) / 0.1
+            naive[b, q] = res.positions[b, k] + w * (res.positions[b, k1] - res.positions[b, k])
+    assert torch.allclose(got, naive, atol=1e-12)
+    assert torch.equal(got[:, -1], res.positions[torch.arange(2), res.lengths - 1])

@@ -441,3 +441,17 @@ def test_compiled_tick_equals_the_eager_tick(l_library: SkillLibrary) -> None:
         a, b = eager.tick(x[i], step=step), compiled.tick(x[i], step=step)
         assert (a.step, a.done, a.branch) == (b.step, b.done, b.branch)
         assert torch.allclose(a.velocity, b.velocity, rtol=1e-12, atol=1e-12)
+
+
+def test_assign_steps_is_monotone_and_follows_the_segmentation(l_library: SkillLibrary) -> None:
+    demos, seg = _l_task()
+    eng = SkillEngine(l_library, "full")
+    route, steps = eng.assign_steps(demos.positions, demos.mask)
+    assert bool((steps[:, 1:] >= steps[:, :-1]).all())
+    for i in range(demos.n_demos):
+        agree = (steps[i, : demos.lengths[i]] == seg.labels[i]).double().mean()
+        assert float(agree) >= 0.9
+    # a trajectory that stays on the first leg is assigned to step 0 (the assignment follows the data)
+    half = demos.positions[:, : int(demos.lengths.min()) // 2 - 5]
+    _, steps_half = eng.assign_steps(half)
+    assert float((steps_half == 0).double().mean()) >= 0.95

@@ -260,6 +260,8 @@ class SkillEngine:
         done: Tensor,
         inside: Tensor | None = None,
         densities: tuple[Tensor, Tensor] | None = None,
+        *,
+        shaping: bool = True,
     ) -> tuple[Tensor, Tensor]:
         """Commanded velocity and branch of B states in their active steps (all steps at once,
         :class:`~lfd_torch.skills.stack.PrimitiveStack`).
@@ -270,6 +272,8 @@ class SkillEngine:
             done: (B,) bool rows whose task is complete (velocity 0, branch AT_GOAL).
             inside: (B,) bool x in A_m, as decided by the tree; None evaluates it here.
             densities: precomputed (log p(x|A_m), log p(x|A_m-)), (B,) each.
+            shaping: apply the arrival rate floor and speed cap (False: the modulated primitive M(x) f_m(x) alone,
+                the field of the paper's E1/E2).
 
         Returns:
             (B, d) velocities (units/s) and (B,) int8 branches.
@@ -279,7 +283,8 @@ class SkillEngine:
             parts = [
                 self.velocity(x[i : i + CHUNK], step[i : i + CHUNK], done[i : i + CHUNK],
                               None if inside is None else inside[i : i + CHUNK],
-                              None if densities is None else (densities[0][i : i + CHUNK], densities[1][i : i + CHUNK]))
+                              None if densities is None else (densities[0][i : i + CHUNK], densities[1][i : i + CHUNK]),
+                              shaping=shaping)
                 for i in range(0, B, CHUNK)
             ]  # fmt: skip
             return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
@@ -294,9 +299,11 @@ class SkillEngine:
         e = x - self.goals[step]  # the modulation is translation invariant: evaluate it around g_m = 0
         res = modulated_velocity_unchecked(e, f, self._origin, own, other, h2, self._h2_ref[step], mod.mode,
                                            mod.lambda_limit, mod.radial_floor)  # fmt: skip
-        r = torch.linalg.vector_norm(e, dim=-1)
-        u = rate_floor(res.velocity, e, self._P[step], self._rate[step])
-        u = speed_cap(u, r, self._v_hi[step], self._slow_radius)
+        u = res.velocity
+        if shaping:
+            r = torch.linalg.vector_norm(e, dim=-1)
+            u = rate_floor(u, e, self._P[step], self._rate[step])
+            u = speed_cap(u, r, self._v_hi[step], self._slow_radius)
         u = torch.where(done.unsqueeze(-1), torch.zeros_like(u), u)
         branch = torch.where(done, torch.full_like(res.branch, int(Branch.AT_GOAL)), res.branch)
         return u, branch
@@ -395,6 +402,54 @@ class SkillEngine:
             branch_log[last + 1 :] = int(Branch.AT_GOAL)
         log = tuple(pushes.log) if pushes is not None else ()
         return EngineRollout(res, steps_log.T.contiguous(), branch_log.T.contiguous(), state["route"], res.converged, log)
+
+    def assign_steps(self, x: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Step of every sample of B trajectories, monotone in time, from the subtask spaces.
+
+        The route is the one :meth:`choose_route` picks at the first sample; within it the steps are the most
+        likely left-to-right path: the Viterbi path of a chain over the route's steps (stay or move to the next
+        step; no skips) with emission log p(x_t | A_m). Used to evaluate a step's velocity field on a demonstration
+        that the engine did not drive (E1, E2 of a test demonstration).
+
+        Args:
+            x: (B, T, d) positions.
+            mask: (B, T) valid samples (prefix-valid); None: all.
+
+        Returns:
+            (B,) routes and (B, T) long steps (padding repeats the last valid step).
+        """
+        if not isinstance(x, Tensor) or x.ndim != 3 or x.shape[-1] != self.dim:
+            raise ShapeMismatchError(f"x must have shape (B, T, {self.dim}), got {getattr(x, 'shape', None)}")
+        x = x.to(**self._f)
+        B, T, _ = x.shape
+        mask = torch.ones(B, T, dtype=torch.bool, device=x.device) if mask is None else mask.to(x.device)
+        lengths = mask.sum(-1)
+        route = self.choose_route(x[:, 0])
+        L = self._route_steps.shape[1]
+        steps_of = self._route_steps[route]  # (B, L), padded with the last step
+        length = self._route_len[route]  # (B,)
+        pos = torch.arange(L, device=x.device)
+        ld = self.log_density(x.reshape(-1, self.dim)).view(B, T, -1)
+        emit = ld.gather(-1, steps_of.unsqueeze(1).expand(B, T, L))  # (B, T, L)
+        emit = emit.masked_fill((pos >= length.unsqueeze(-1)).unsqueeze(1), -math.inf)  # beyond the route
+        neg = torch.full((B, 1), -math.inf, **self._f)
+        score = torch.where(pos == 0, emit[:, 0], torch.full_like(emit[:, 0], -math.inf))
+        moved = torch.zeros((B, T, L), dtype=torch.bool, device=x.device)
+        for t in range(1, T):  # a left-to-right Viterbi recursion is sequential in t; vectorised over B and L
+            prev = torch.cat([neg, score[:, :-1]], dim=1)
+            move = prev > score
+            new = torch.maximum(score, prev) + emit[:, t]
+            live = mask[:, t].unsqueeze(-1)
+            score = torch.where(live, new, score)
+            moved[:, t] = move & live
+        j = score.masked_fill(pos >= length.unsqueeze(-1), -math.inf).argmax(-1)  # (B,)
+        out = torch.empty((B, T), dtype=torch.long, device=x.device)
+        for t in range(T - 1, -1, -1):
+            out[:, t] = j
+            j = j - (moved[:, t].gather(-1, j.unsqueeze(-1)).squeeze(-1) & (t < lengths)).long()
+        steps = steps_of.gather(-1, out)
+        last = steps.gather(-1, (lengths - 1).clamp_min(0).unsqueeze(-1))
+        return route, torch.where(mask, steps, last)
 
     def replay_large_share(self) -> list[float]:
         """Share of each step's own training states on which the large-scale branch fires (mode ``full``).

@@ -1,0 +1,167 @@
+"""LASA benchmark in the paper's protocol (Sec. V-A, Fig. 9): train on ONE demonstration, test on the other six.
+
+The training demonstration is the fold (0..6, a sweep axis). Methods are the product segmentation {none,
+bp_gm_hmm} x primitive {seds, lpvds} x modulation {none, full}; the library of a (segmentation, primitive) pair is
+learned once and shared by its modulation variants (a modulation setting never refits), and is saved in the job
+folder. All demonstrations are sub-sampled by 2 (``subsample``) as in the LPV-DS literature.
+
+Metrics of every (shape, fold, method, demonstration), train and test:
+
+* E1 (mean velocity error, mm/s) and E2 (mean |1 - cos|) of the step velocity M(x) f_m(x) at the demonstration's
+  states, as the paper defines them (the modulated primitive; the engine's arrival shaping, rate floor and speed
+  cap, is not part of it). The step m of each sample comes from :meth:`SkillEngine.assign_steps`: monotone in time,
+  the left-to-right Viterbi path over the route's steps with emission log p(x | A_m);
+* E3 (mean swept area, mm^2) between the demonstration and the engine's rollout from its start, the rollout sampled
+  at the demonstration's time stamps (linear interpolation; after the rollout stops it stays at its end point);
+* DTWD (mm) between the rollout and the demonstration, final-point error (mm) and whether the task finished.
+
+One row per (shape, fold, method, seed, demo) goes to ``results.parquet`` in the job folder; a sweep is merged with
+``python -m lfd_torch.store.collect``.
+
+    python experiments/lasa_benchmark.py                                   # quick: a few shapes, fold 0
+    python experiments/lasa_benchmark.py -m fold=0,1,2,3,4,5,6             # folds (joblib launcher)
+    python experiments/lasa_benchmark.py +experiment=lasa_benchmark_paper  # 30 shapes, fold 0, multirun
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import hydra
+import pandas as pd
+import torch
+
+torch.set_num_threads(1)  # the busy-waiting default pool is ~10x slower on a loaded 2-core box
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from lfd_torch.data import LASA_NAMES, Demos, load_lasa
+from lfd_torch.errors import LfdError
+from lfd_torch.metrics import cosine_dissimilarity, dtw_distance, swept_area, velocity_error
+from lfd_torch.modulation import Modulation
+from lfd_torch.preprocess import subsample
+from lfd_torch.skills import SkillEngine, SkillLibrary
+from lfd_torch.store import run_manifest, write_table
+from lfd_torch.utils import derive_seed
+
+log = logging.getLogger(__name__)
+
+METRICS = ("E1", "E2", "E3", "DTWD", "final_error")
+
+
+def step_velocities(engine: SkillEngine, demos: Demos) -> torch.Tensor:
+    """M(x) f_m(x) at every demonstration sample, m from :meth:`SkillEngine.assign_steps` (module docstring)."""
+    _, steps = engine.assign_steps(demos.positions, demos.mask)
+    B, T, d = demos.positions.shape
+    v, _ = engine.velocity(demos.positions.reshape(-1, d), steps.reshape(-1),
+                           torch.zeros(B * T, dtype=torch.bool), shaping=False)  # fmt: skip
+    return v.view(B, T, d)
+
+
+def evaluate(engine: SkillEngine, demos: Demos, dt: float, budget_s: float) -> dict[str, torch.Tensor]:
+    """Per-demonstration metrics (module docstring): (B,) tensors."""
+    mask = demos.mask
+    v = step_velocities(engine, demos)
+    out = engine.rollout(demos.start_points, dt=dt, n_steps=int(round(budget_s / dt)))
+    res = out.result
+    x_on_demo = res.positions_at(demos.times - demos.times[:, :1])  # the rollout at the demo's time stamps
+    final = res.positions[torch.arange(res.n_starts), res.lengths - 1]
+    return {
+        "E1": velocity_error(v, demos.velocities, mask),
+        "E2": cosine_dissimilarity(v, demos.velocities, mask),
+        "E3": swept_area(x_on_demo, demos.positions, mask),
+        "DTWD": dtw_distance(res.positions, demos.positions, res.lengths, demos.lengths),
+        "final_error": torch.linalg.vector_norm(final - demos.attractor.to(final), dim=-1),
+        "reached": out.done,
+        "time_s": (res.lengths - 1).to(demos.dtype) * dt,
+    }
+
+
+def fitter(primitive_cfg: DictConfig) -> Any:
+    return instantiate(primitive_cfg)
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    if not isinstance(cfg.seed, int) or not isinstance(cfg.fold, int):
+        raise TypeError(f"seed and fold must be integers, got {cfg.seed!r}, {cfg.fold!r}")
+    multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    if cfg.get("publish") and multirun:
+        raise ValueError("publish=true in a multirun would let every job overwrite the published table; "
+                         "merge the sweep with `python -m lfd_torch.store.collect` instead")
+    out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(cfg.get("out_dir", "."))
+    shapes = list(LASA_NAMES) if cfg.shapes == "all" else [str(s) for s in cfg.shapes]
+    manifest = run_manifest(cfg, seed=cfg.seed)
+    arrival = instantiate(cfg.skills.arrival)
+    mod_kw = {k: v for k, v in OmegaConf.to_container(cfg.modulation, resolve=True).items() if k not in ("_target_", "mode")}
+    lib_kw = OmegaConf.to_container(cfg.skills.library, resolve=True)
+    assert isinstance(lib_kw, dict)
+    rows: list[dict[str, Any]] = []
+    for shape in shapes:
+        demos = subsample(load_lasa(shape), int(cfg.subsample), keep_last=False)
+        fold = int(cfg.fold)
+        test_idx = [i for i in range(demos.n_demos) if i != fold]
+        splits = {"train": ([fold], demos[[fold]]), "test": (test_idx, demos[test_idx])}
+        for seg_name in cfg.segmentations:
+            for prim_name in cfg.primitives:
+                key = f"{seg_name}+{prim_name}"
+                seed = derive_seed(cfg.experiment, shape, fold, key, cfg.seed)
+                g = torch.Generator().manual_seed(seed)
+                t0 = time.perf_counter()
+                try:
+                    segmenter = instantiate(cfg.segmenters[seg_name])
+                    seg = segmenter(splits["train"][1], generator=g)
+                    lib = SkillLibrary.learn(splits["train"][1], seg, primitive=fitter(cfg.fitters[prim_name]),
+                                             generator=g, **lib_kw)  # fmt: skip
+                except LfdError as exc:
+                    log.error("%s fold %d %s failed: %s", shape, fold, key, exc)
+                    for mod_name in cfg.modulations:
+                        for split, (idx, _) in splits.items():
+                            for i in idx:
+                                rows.append({"experiment": cfg.experiment, "shape": shape, "method": f"{key}+{mod_name}",
+                                             "fold": fold, "seed": int(cfg.seed), "trajectory": int(i), "split": split,
+                                             "status": f"{type(exc).__name__}: {exc}", **{m: math.nan for m in METRICS}})  # fmt: skip
+                    continue
+                fit_s = time.perf_counter() - t0
+                if cfg.save_libraries:
+                    lib.save(out_dir / "libraries" / f"{shape}_fold{fold}_{key}")
+                for mod_name in cfg.modulations:
+                    engine = SkillEngine(lib, Modulation(mode=str(mod_name), **mod_kw), arrival)
+                    method = f"{key}+{mod_name}"
+                    for split, (idx, part) in splits.items():
+                        values = evaluate(engine, part, float(cfg.dt), float(cfg.budget_s))
+                        for b, i in enumerate(idx):
+                            rows.append({
+                                "experiment": cfg.experiment, "shape": shape, "method": method, "fold": fold,
+                                "seed": int(cfg.seed), "trajectory": int(i), "split": split, "status": "ok",
+                                "segmentation": seg_name, "primitive": prim_name, "modulation": str(mod_name),
+                                **{m: float(values[m][b]) for m in METRICS}, "reached": bool(values["reached"][b]),
+                                "time_s": float(values["time_s"][b]), "n_steps": lib.n_steps, "fit_s": fit_s,
+                                "stability_passed": bool(lib.stability["passed"]) if lib.stability else None,
+                            })  # fmt: skip
+                log.info("%s fold %d %s: %d steps, %.1f s", shape, fold, key, lib.n_steps, fit_s)
+    table = pd.DataFrame(rows)
+    written = [write_table(table, out_dir / "results.parquet", manifest=manifest)]
+    ok = table[table.status == "ok"]
+    if len(ok):
+        summary = ok.groupby(["method", "split"])[list(METRICS)].agg(["mean", "std"])
+        log.info("summary:\n%s", summary.to_string(float_format=lambda v: f"{v:.3g}"))
+    return {"table": table, "written": written}
+
+
+@hydra.main(config_path="../conf", config_name="lasa_benchmark", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    result = run(cfg)
+    ok = result["table"]
+    ok = ok[ok.status == "ok"]
+    if len(ok):
+        print(ok.groupby(["method", "split"])[list(METRICS)].mean().to_string(float_format=lambda v: f"{v:.3g}"))
+
+
+if __name__ == "__main__":
+    main()
