@@ -455,3 +455,16 @@ def test_assign_steps_is_monotone_and_follows_the_segmentation(l_library: SkillL
     half = demos.positions[:, : int(demos.lengths.min()) // 2 - 5]
     _, steps_half = eng.assign_steps(half)
     assert float((steps_half == 0).double().mean()) >= 0.95
+
+
+def test_reproduction_reference_keeps_the_nominal_motion_unmodulated(l_library: SkillLibrary) -> None:
+    demos, seg = _l_task()
+    lib = SkillLibrary.learn(demos, seg, generator=torch.Generator().manual_seed(1), entropy_reference="reproduction",
+                             check=False)  # fmt: skip
+    for a, b in zip(lib.skills, l_library.skills):
+        assert float(a.h2_ref) >= float(b.h2_ref) - 1e-12
+    out = SkillEngine(lib, "small").rollout(demos.start_points, dt=0.01, n_steps=3000)
+    valid = out.result.mask
+    assert not bool((out.branches[valid] == int(Branch.SMALL_SCALE)).any())
+    with pytest.raises(LookupError):
+        SkillLibrary.learn(demos, seg, generator=torch.Generator(), entropy_reference="nope", check=False)

@@ -3,7 +3,11 @@
 A skill m holds the stable primitive learned on the pieces of step m (``Segmentation.split(end_at_attractor=True)``,
 attractor g_m), the step's training positions, its typical demonstrated speed, and the entropy threshold H2(x_r)
 of the small-scale modulation computed at fit time (NOTES sec. 4: by default the largest H2 over the step's
-training states; a quantile, or the paper's literal x_r = g_m, by ``entropy_quantile``). The subtask space A_m
+training states; a quantile, or the paper's literal x_r = g_m, by ``entropy_quantile``; with
+``entropy_reference="reproduction"`` at least the largest H2 of the states the unmodulated engine visits when it
+reproduces the training demonstrations: with one demonstration the position Gaussians are thin across the path, and
+the reproduction itself, 0.3 mm off the data on LASA, exceeds the training-state maximum, so that the small-scale
+branch would fire on the nominal motion and pull it off the path towards g_m). The subtask space A_m
 stays in the segmentation (``Segmentation.log_density`` / ``other_log_density``), which the library carries.
 
 Persistence: ``save(dir)`` writes ``segmentation.pt``, one ``step_{m}.pt`` per primitive, ``skills.pt`` (training
@@ -33,7 +37,7 @@ from torch import Tensor
 
 from lfd_torch.data import Demos
 from lfd_torch.ds import StablePrimitive, fit_lpvds, load_primitive
-from lfd_torch.errors import InvalidArgumentError, LfdError, ShapeMismatchError, StoreError
+from lfd_torch.errors import InvalidArgumentError, LfdError, ShapeMismatchError, StoreError, UnknownNameError
 from lfd_torch.modulation import reference_entropy
 from lfd_torch.segmentation import Segmentation
 from lfd_torch.store import atomic_path
@@ -175,6 +179,7 @@ class SkillLibrary:
         primitive: Fitter | None = None,
         generator: torch.Generator,
         entropy_quantile: float | None = 1.0,
+        entropy_reference: str = "training",
         reuse: Mapping[int, Skill | StablePrimitive] | None = None,
         check: Mapping[str, Any] | bool = True,
     ) -> SkillLibrary:
@@ -188,6 +193,9 @@ class SkillLibrary:
             generator: source of randomness for the fitter (one draw per step, in step order).
             entropy_quantile: threshold H2(x_r) = this quantile of H2 over the step's training states (1.0 = max);
                 None: the paper's literal x_r = g_m.
+            entropy_reference: ``training`` (the states above) or ``reproduction``: the threshold is also at least
+                the largest H2 of the states that the unmodulated engine visits in each step when it reproduces the
+                training demonstrations from their starts (module docstring).
             reuse: ``{m: skill or primitive}`` taken as the primitive of step m instead of fitting one (a skill
                 learned on another task); its attractor must equal g_m.
             check: run :func:`~lfd_torch.skills.check_stability` on the new library (True: default settings; a
@@ -234,7 +242,12 @@ class SkillLibrary:
             skills.append(Skill(m, prim, h2.detach(), x_m.detach(), speed, duration))
         x_all = demos.samples()[0]
         span = float((x_all.amax(0) - x_all.amin(0)).max())
-        lib = cls(segmentation, tuple(skills), entropy_quantile, span, None, {"fitted_steps": fitted})
+        lib = cls(segmentation, tuple(skills), entropy_quantile, span, None,
+                  {"fitted_steps": fitted, "entropy_reference": entropy_reference})  # fmt: skip
+        if entropy_reference == "reproduction":
+            lib = _with_reproduction_thresholds(lib, demos)
+        elif entropy_reference != "training":
+            raise UnknownNameError("entropy reference", str(entropy_reference), ("training", "reproduction"))
         if check:
             from lfd_torch.skills.stability import check_stability
 
@@ -360,6 +373,24 @@ class SkillLibrary:
                        manifest.get("stability"), dict(manifest.get("info") or {}))  # fmt: skip
         except (KeyError, LfdError) as exc:
             raise StoreError(f"{man_path}: inconsistent library ({exc})") from exc
+
+
+def _with_reproduction_thresholds(lib: SkillLibrary, demos: Demos, dt: float = 0.01) -> SkillLibrary:
+    """Raise each threshold to the largest H2 on the unmodulated engine's reproduction of the training demos."""
+    from lfd_torch.modulation import renyi_entropy
+    from lfd_torch.skills.engine import SkillEngine
+
+    engine = SkillEngine(lib, "none")
+    horizon = float(demos.durations.max()) * 5.0 + 5.0
+    out = engine.rollout(demos.start_points.to(lib.dtype), dt=dt, n_steps=max(1, int(horizon / dt)))
+    x, steps, valid = out.result.positions, out.steps, out.result.mask
+    skills = list(lib.skills)
+    for m, s in enumerate(skills):
+        sel = valid & (steps == m)
+        if bool(sel.any()):
+            h2 = renyi_entropy(s.primitive, x[sel]).max()
+            skills[m] = dataclasses.replace(s, h2_ref=torch.maximum(s.h2_ref, h2.detach()))
+    return dataclasses.replace(lib, skills=tuple(skills))
 
 
 def _simple_init(exc: Exception) -> bool:
