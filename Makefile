@@ -25,7 +25,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/python experiments/lasa_metrics.py
+	$(BIN)/python experiments/lasa_benchmark.py
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n 2 tests

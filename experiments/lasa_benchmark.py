@@ -15,8 +15,10 @@ Metrics of every (shape, fold, method, demonstration), train and test:
   at the demonstration's time stamps (linear interpolation; after the rollout stops it stays at its end point);
 * DTWD (mm) between the rollout and the demonstration, final-point error (mm) and whether the task finished.
 
-One row per (shape, fold, method, seed, demo) goes to ``results.parquet`` in the job folder; a sweep is merged with
-``python -m lfd_torch.store.collect``.
+One row per (shape, fold, method, seed, demo) goes to ``results.parquet`` in the job folder, with ``summary.md`` /
+``summary.csv`` (mean and std of every metric per method, train and test) and ``violins.png`` (E1, E2, E3 by
+method, train and test halves: paper Fig. 9); ``publish=true`` (not in a multirun) also writes them into
+``paths.tables`` / ``paths.figures``. A sweep is merged with ``python -m lfd_torch.store.collect``.
 
     python experiments/lasa_benchmark.py                                   # quick: a few shapes, fold 0
     python experiments/lasa_benchmark.py -m fold=0,1,2,3,4,5,6             # folds (joblib launcher)
@@ -34,6 +36,7 @@ from typing import Any
 import hydra
 import pandas as pd
 import torch
+from tqdm import tqdm
 
 torch.set_num_threads(1)  # the busy-waiting default pool is ~10x slower on a loaded 2-core box
 from hydra.core.hydra_config import HydraConfig
@@ -47,8 +50,9 @@ from lfd_torch.metrics import cosine_dissimilarity, dtw_distance, swept_area, ve
 from lfd_torch.modulation import Modulation
 from lfd_torch.preprocess import subsample
 from lfd_torch.skills import SkillEngine, SkillLibrary
-from lfd_torch.store import run_manifest, write_table
+from lfd_torch.store import atomic_write, run_manifest, write_table
 from lfd_torch.utils import derive_seed
+from lfd_torch.viz import violin_grid
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +106,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     lib_kw = OmegaConf.to_container(cfg.skills.library, resolve=True)
     assert isinstance(lib_kw, dict)
     rows: list[dict[str, Any]] = []
-    for shape in shapes:
+    for shape in tqdm(shapes, desc="lasa_benchmark", unit="shape", disable=not cfg.progress):
         demos = subsample(load_lasa(shape), int(cfg.subsample), keep_last=False)
         fold = int(cfg.fold)
         test_idx = [i for i in range(demos.n_demos) if i != fold]
@@ -147,20 +151,52 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                 log.info("%s fold %d %s: %d steps, %.1f s", shape, fold, key, lib.n_steps, fit_s)
     table = pd.DataFrame(rows)
     written = [write_table(table, out_dir / "results.parquet", manifest=manifest)]
+    summ = summary(table)
+    written += write_summary(summ, out_dir, "summary") + write_violins(table, out_dir / "violins.png")
+    if cfg.get("publish"):
+        written.append(write_table(table, Path(cfg.paths.tables) / f"{cfg.experiment}.parquet", manifest=manifest))
+        written += write_summary(summ, Path(cfg.paths.tables), f"{cfg.experiment}_summary")
+        written += write_violins(table, Path(cfg.paths.figures) / f"{cfg.experiment}_violins.png")
+    log.info("summary:\n%s", summ.to_string(index=False))
+    return {"table": table, "summary": summ, "written": written}
+
+
+def summary(table: pd.DataFrame) -> pd.DataFrame:
+    """Mean and std of every metric per (method, split), plus the share of finished rollouts and of failed fits."""
     ok = table[table.status == "ok"]
-    if len(ok):
-        summary = ok.groupby(["method", "split"])[list(METRICS)].agg(["mean", "std"])
-        log.info("summary:\n%s", summary.to_string(float_format=lambda v: f"{v:.3g}"))
-    return {"table": table, "written": written}
+    if not len(ok):
+        return pd.DataFrame()
+    agg = ok.groupby(["method", "split"], sort=False)[list(METRICS)].agg(["mean", "std"])
+    agg.columns = [f"{m}_{stat}" for m, stat in agg.columns]
+    agg["reached"] = ok.groupby(["method", "split"], sort=False)["reached"].mean()
+    agg["rows"] = ok.groupby(["method", "split"], sort=False).size()
+    agg["failed_rows"] = table[table.status != "ok"].groupby(["method", "split"]).size().reindex(agg.index).fillna(0)
+    return agg.reset_index()
+
+
+def write_summary(summ: pd.DataFrame, where: Path, name: str) -> list[Path]:
+    """``{name}.md`` and ``{name}.csv`` of the summary under ``where``."""
+    if not len(summ):
+        return []
+    md = summ.to_markdown(index=False, floatfmt=".3g")
+    return [atomic_write(where / f"{name}.md", lambda p: p.write_text(md + "\n")),
+            atomic_write(where / f"{name}.csv", lambda p: summ.to_csv(p, index=False))]  # fmt: skip
+
+
+def write_violins(table: pd.DataFrame, path: Path) -> list[Path]:
+    """E1, E2, E3 by method, train and test halves (paper Fig. 9), log scale."""
+    ok = table[table.status == "ok"]
+    if not len(ok):
+        return []
+    violin_grid(ok, ["E1", "E2", "E3"], by="method", hue="split", path=path,
+                titles=["E1 (mm/s)", "E2 (1 - cos)", "E3 (mm^2)"], panel_size=(5.5, 3.8), log_scale=True)  # fmt: skip
+    return [path]
 
 
 @hydra.main(config_path="../conf", config_name="lasa_benchmark", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     result = run(cfg)
-    ok = result["table"]
-    ok = ok[ok.status == "ok"]
-    if len(ok):
-        print(ok.groupby(["method", "split"])[list(METRICS)].mean().to_string(float_format=lambda v: f"{v:.3g}"))
+    print(result["summary"].to_string(index=False, float_format=lambda v: f"{v:.3g}"))
 
 
 if __name__ == "__main__":
