@@ -23,6 +23,10 @@ method, train and test halves: paper Fig. 9); ``publish=true`` (not in a multiru
     python experiments/lasa_benchmark.py                                   # quick: a few shapes, fold 0
     python experiments/lasa_benchmark.py -m fold=0,1,2,3,4,5,6             # folds (joblib launcher)
     python experiments/lasa_benchmark.py +experiment=lasa_benchmark_paper  # 30 shapes, fold 0, multirun
+
+Resume: a job whose folder already holds its ``results.parquet`` from the same configuration (config hash and seed)
+is skipped (``resume=true``, the default), so re-running a killed sweep with the same ``hydra.sweep.dir`` only runs
+the jobs that had not finished; the parquet is written atomically as a job's last act, so a killed job leaves none.
 """
 
 from __future__ import annotations
@@ -50,7 +54,7 @@ from lfd_torch.metrics import cosine_dissimilarity, dtw_distance, swept_area, ve
 from lfd_torch.modulation import Modulation
 from lfd_torch.preprocess import subsample
 from lfd_torch.skills import SkillEngine, SkillLibrary
-from lfd_torch.store import atomic_write, run_manifest, write_table
+from lfd_torch.store import atomic_write, finished_part, run_manifest, write_table
 from lfd_torch.utils import derive_seed
 from lfd_torch.viz import violin_grid
 
@@ -101,6 +105,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(cfg.get("out_dir", "."))
     shapes = list(LASA_NAMES) if cfg.shapes == "all" else [str(s) for s in cfg.shapes]
     manifest = run_manifest(cfg, seed=cfg.seed)
+    done = finished_part(out_dir / "results.parquet", manifest) if cfg.resume else None
+    if done is not None:  # a re-run sweep (same hydra.sweep.dir) skips its finished jobs
+        log.info("%s already holds this job's rows (config %s); skipped", out_dir, manifest["config_hash"])
+        return {"table": done, "summary": summary(done), "written": [], "skipped": True}
     arrival = instantiate(cfg.skills.arrival)
     mod_kw = {k: v for k, v in OmegaConf.to_container(cfg.modulation, resolve=True).items() if k not in ("_target_", "mode")}
     lib_kw = OmegaConf.to_container(cfg.skills.library, resolve=True)
@@ -150,15 +158,16 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                             })  # fmt: skip
                 log.info("%s fold %d %s: %d steps, %.1f s", shape, fold, key, lib.n_steps, fit_s)
     table = pd.DataFrame(rows)
-    written = [write_table(table, out_dir / "results.parquet", manifest=manifest)]
     summ = summary(table)
-    written += write_summary(summ, out_dir, "summary") + write_violins(table, out_dir / "violins.png")
+    written = write_summary(summ, out_dir, "summary") + write_violins(table, out_dir / "violins.png")
+    # the rows last: their presence marks the job as finished (resume)
+    written.append(write_table(table, out_dir / "results.parquet", manifest=manifest))
     if cfg.get("publish"):
         written.append(write_table(table, Path(cfg.paths.tables) / f"{cfg.experiment}.parquet", manifest=manifest))
         written += write_summary(summ, Path(cfg.paths.tables), f"{cfg.experiment}_summary")
         written += write_violins(table, Path(cfg.paths.figures) / f"{cfg.experiment}_violins.png")
     log.info("summary:\n%s", summ.to_string(index=False))
-    return {"table": table, "summary": summ, "written": written}
+    return {"table": table, "summary": summ, "written": written, "skipped": False}
 
 
 def summary(table: pd.DataFrame) -> pd.DataFrame:

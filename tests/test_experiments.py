@@ -92,3 +92,38 @@ def test_lasa_benchmark_one_training_demo_rows_and_shared_libraries(tmp_path, mo
     assert set(train.trajectory) == {2} and set(table[table.split == "test"].trajectory) == {0, 1, 3, 4, 5, 6}
     assert table[["E1", "E2", "E3", "DTWD", "final_error"]].notna().all().all() and table.reached.all()
     assert len(result["table"]) == len(table)
+
+
+@pytest.mark.slow
+def test_killed_multirun_resumes_to_the_table_of_an_uninterrupted_run(tmp_path):
+    """A multirun killed after its first job, re-run with the same sweep dir, skips the finished job and ends with
+    the same merged table as a run that was never interrupted."""
+    import os
+    import signal
+    import time
+
+    script = ROOT / "experiments" / "lasa_benchmark.py"
+
+    def command(sweep: Path) -> list[str]:
+        return [sys.executable, str(script), "-m", "shapes=[Angle],[Line],[CShape]", "segmentations=[none]",
+                "primitives=[lpvds]", "modulations=[none]", "progress=false", f"hydra.sweep.dir={sweep}"]  # fmt: skip
+
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    ref_dir, cut_dir = tmp_path / "ref", tmp_path / "cut"
+    subprocess.run(command(ref_dir), check=True, env=env, capture_output=True, timeout=600)
+    proc = subprocess.Popen(command(cut_dir), env=env, start_new_session=True, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)  # fmt: skip
+    first = cut_dir / "0" / "results.parquet"
+    deadline = time.time() + 300
+    while not first.exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert first.exists() and not (cut_dir / "2" / "results.parquet").exists()
+    stamp = first.stat().st_mtime_ns
+    out = subprocess.run(command(cut_dir), check=True, env=env, capture_output=True, text=True, timeout=600)
+    assert first.stat().st_mtime_ns == stamp  # the finished job was skipped, not rewritten
+    ref, got = collect(ref_dir), collect(cut_dir)
+    cols = list(KEY_COLUMNS) + ["split", "E1", "E2", "E3", "DTWD", "final_error", "reached"]
+    pd.testing.assert_frame_equal(got[cols], ref[cols], rtol=1e-6)
+    assert "skipped" in (cut_dir / "0" / "lasa_benchmark.log").read_text()

@@ -362,3 +362,26 @@ def test_report_primitives_summary_and_count(capsys: pytest.CaptureFixture[str],
     assert main([str(path)]) == 0
     out = capsys.readouterr().out
     assert "on 1 of 3 shapes: A" in out and "| C | lpvds_pqlf |" in out and "NO (1 failed)" in out
+
+
+def test_a_step_does_not_depend_on_what_was_solved_before() -> None:
+    """The A-step program is cached per (K, d); solving another problem in between must not change a solution
+    (no warm start from the previous fit)."""
+    from lfd_torch.ds import solve_lpv_matrices
+
+    gen = torch.Generator().manual_seed(3)
+
+    def data(scale: float):
+        x = torch.randn(200, 2, generator=gen, dtype=torch.float64) * scale
+        v = -x @ torch.tensor([[1.0, 0.4], [-0.3, 0.8]], dtype=torch.float64) + 0.05 * torch.randn(200, 2, generator=gen, dtype=torch.float64)
+        gamma = torch.softmax(torch.randn(200, 3, generator=gen, dtype=torch.float64), -1)
+        return x, v, gamma
+
+    P = torch.eye(2, dtype=torch.float64)
+    g = torch.zeros(2, dtype=torch.float64)
+    a = data(1.0)
+    b = data(3.0)
+    first, _ = solve_lpv_matrices(*a, g, P)
+    solve_lpv_matrices(*b, g, P)
+    again, _ = solve_lpv_matrices(*a, g, P)
+    assert torch.equal(first, again)

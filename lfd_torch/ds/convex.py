@@ -57,7 +57,9 @@ def solve_problem(
         try:
             with warnings.catch_warnings():  # "Solution may be inaccurate": the status is checked below
                 warnings.simplefilter("ignore", UserWarning)
-                problem.solve(solver=name, **options.get(name, {}))
+                # no warm start: a cached program would otherwise start from the previous fit's solution, and
+                # the result (to the solver's tolerance) would depend on what was solved before in the process
+                problem.solve(solver=name, **{"warm_start": False, **options.get(name, {})})
         except (cp.error.SolverError, cp.error.DCPError, ValueError, ArithmeticError) as exc:
             attempts.append(f"{name}: {type(exc).__name__}: {exc}")
             continue

@@ -29,7 +29,7 @@ from lfd_torch.store.manifest import (
     git_sha,
     run_manifest,
 )
-from lfd_torch.store.sweep import PartialSweepWarning, collect, find_parts
+from lfd_torch.store.sweep import PartialSweepWarning, collect, find_parts, finished_part
 from lfd_torch.store.table import (
     KEY_COLUMNS,
     PROVENANCE_COLUMNS,
@@ -59,5 +59,6 @@ __all__ = [
     "validate_table",
     "collect",
     "find_parts",
+    "finished_part",
     "PartialSweepWarning",
 ]

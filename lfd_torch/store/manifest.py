@@ -34,7 +34,7 @@ __all__ = ["config_hash", "canonical_json", "git_sha", "run_manifest", "MANIFEST
 
 #: Top-level configuration keys that :func:`config_hash` leaves out unless told otherwise.
 # Top-level keys that say where results go or which seed runs, not what is computed.
-DEFAULT_HASH_EXCLUDE: tuple[str, ...] = ("seed", "hydra", "paths", "out_dir", "publish")
+DEFAULT_HASH_EXCLUDE: tuple[str, ...] = ("seed", "hydra", "paths", "out_dir", "publish", "resume", "progress")
 
 #: Keys of the dictionary returned by :func:`run_manifest`.
 MANIFEST_FIELDS: tuple[str, ...] = (

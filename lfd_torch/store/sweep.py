@@ -22,8 +22,9 @@ from __future__ import annotations
 
 import os
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 import pyarrow as pa
@@ -31,9 +32,17 @@ import pyarrow.parquet as pq
 
 from lfd_torch.errors import StoreError
 from lfd_torch.store.atomic import atomic_write, is_temp_file
-from lfd_torch.store.table import KEY_COLUMNS, REQUIRED_COLUMNS, validate_table, write_parquet_atomic, written_at_ns
+from lfd_torch.store.table import (
+    KEY_COLUMNS,
+    REQUIRED_COLUMNS,
+    read_manifest,
+    read_table,
+    validate_table,
+    write_parquet_atomic,
+    written_at_ns,
+)
 
-__all__ = ["collect", "find_parts", "PartialSweepWarning", "main"]
+__all__ = ["collect", "find_parts", "finished_part", "PartialSweepWarning", "main"]
 
 _SUFFIXES = (".parquet", ".csv")
 _ORDER_COLUMNS = ("__written_at_ns", "__part")
@@ -89,6 +98,27 @@ def _save(frame: pd.DataFrame, path: Path) -> None:
         atomic_write(path, lambda tmp: frame.to_csv(tmp, index=False))
     else:
         raise StoreError(f"cannot save to {path}: supported suffixes are {list(_SUFFIXES)}")
+
+
+def finished_part(path: str | os.PathLike[str], manifest: Mapping[str, Any]) -> pd.DataFrame | None:
+    """The rows of a job that already ran with the same configuration, for resuming a sweep; else None.
+
+    A job's part counts as finished when ``path`` is a valid results table (it is written atomically, as the
+    job's last act) whose manifest has the same ``config_hash`` and ``seed`` as ``manifest`` (from
+    :func:`~lfd_torch.store.run_manifest` of the job about to run). A missing, damaged or foreign file, or one from
+    another configuration, is not finished: the job runs and replaces it.
+    """
+    p = Path(path)
+    if not p.is_file():
+        return None
+    try:
+        old = read_manifest(p)
+        frame = read_table(p)
+    except StoreError:
+        return None
+    if old is None or old.get("config_hash") != manifest.get("config_hash") or old.get("seed") != manifest.get("seed"):
+        return None
+    return frame
 
 
 def collect(
