@@ -127,3 +127,31 @@ def test_killed_multirun_resumes_to_the_table_of_an_uninterrupted_run(tmp_path):
     cols = list(KEY_COLUMNS) + ["split", "E1", "E2", "E3", "DTWD", "final_error", "reached"]
     pd.testing.assert_frame_equal(got[cols], ref[cols], rtol=1e-6)
     assert "skipped" in (cut_dir / "0" / "lasa_benchmark.log").read_text()
+
+
+@pytest.mark.parametrize("launcher", ["joblib", "submitit_local", "submitit_slurm", "ray"])
+def test_launcher_configs_compose(launcher):
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("lasa_benchmark", overrides=[f"hydra/launcher={launcher}"], return_hydra_config=True)
+    target = cfg.hydra.launcher._target_
+    assert target.startswith("hydra_plugins.") and target.split(".")[1].startswith(
+        {"joblib": "hydra_joblib", "submitit_local": "hydra_submitit", "submitit_slurm": "hydra_submitit",
+         "ray": "hydra_ray"}[launcher])  # fmt: skip
+    if launcher == "joblib":
+        assert cfg.hydra.launcher.n_jobs == -1
+
+
+@pytest.mark.slow
+def test_tiny_sweep_through_submitit_local(tmp_path):
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    import os
+
+    script = ROOT / "experiments" / "lasa_benchmark.py"
+    sweep = tmp_path / "sweep"
+    cmd = [sys.executable, str(script), "-m", "hydra/launcher=submitit_local", "fold=0,3", "shapes=[Line]",
+           "segmentations=[none]", "primitives=[lpvds]", "modulations=[none]", "progress=false",
+           f"hydra.sweep.dir={sweep}"]  # fmt: skip
+    subprocess.run(cmd, check=True, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, timeout=600)
+    table = collect(sweep)
+    assert sorted(set(table.fold)) == [0, 3] and len(table) == 14
+    assert set(table[table.split == "train"].trajectory) == {0, 3}
