@@ -13,7 +13,7 @@ export OMP_NUM_THREADS ?= 1
 export OMP_WAIT_POLICY ?= PASSIVE
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup run test bench clean
+.PHONY: setup run test bench figures clean
 
 setup: $(STAMP)
 
@@ -33,6 +33,13 @@ test: $(STAMP)
 # glibc malloc otherwise returns and re-requests the field's temporaries every step (page-fault storm).
 bench: $(STAMP)
 	MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=1073741824 $(BIN)/python experiments/bench_core.py
+
+# Every published figure and table in results/ (each command's publish preset; see README).
+figures: $(STAMP)
+	$(BIN)/python experiments/segment_lasa.py +experiment=segment_lasa_publish
+	$(BIN)/python experiments/lasa_tasks.py +experiment=lasa_tasks_publish
+	$(BIN)/python experiments/lasa_benchmark.py +experiment=lasa_benchmark_publish
+	test ! -f experiments/mnist.py || $(BIN)/python experiments/mnist.py publish=true
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache

@@ -109,10 +109,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     if done is not None:  # a re-run sweep (same hydra.sweep.dir) skips its finished jobs
         log.info("%s already holds this job's rows (config %s); skipped", out_dir, manifest["config_hash"])
         return {"table": done, "summary": summary(done), "written": [], "skipped": True}
-    arrival = instantiate(cfg.skills.arrival)
+    settings = instantiate(cfg.skills)
+    arrival = settings.arrival
     mod_kw = {k: v for k, v in OmegaConf.to_container(cfg.modulation, resolve=True).items() if k not in ("_target_", "mode")}
-    lib_kw = OmegaConf.to_container(cfg.skills.library, resolve=True)
-    assert isinstance(lib_kw, dict)
+    lib_kw = settings.learn_kwargs
     rows: list[dict[str, Any]] = []
     for shape in tqdm(shapes, desc="lasa_benchmark", unit="shape", disable=not cfg.progress):
         demos = subsample(load_lasa(shape), int(cfg.subsample), keep_last=False)

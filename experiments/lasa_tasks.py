@@ -127,9 +127,7 @@ def learn(cfg: DictConfig, demos: Demos, segmenter: Any, seed_parts: tuple) -> t
     g = torch.Generator().manual_seed(derive_seed(*seed_parts))
     t0 = time.perf_counter()
     seg = segmenter(demos, generator=g)
-    lib_cfg = OmegaConf.to_container(cfg.skills.library, resolve=True)
-    assert isinstance(lib_cfg, dict)
-    lib = SkillLibrary.learn(demos, seg, primitive=instantiate(cfg.ds), generator=g, **lib_cfg)
+    lib = SkillLibrary.learn(demos, seg, primitive=instantiate(cfg.ds), generator=g, **instantiate(cfg.skills).learn_kwargs)
     return lib, time.perf_counter() - t0
 
 
@@ -140,7 +138,7 @@ def run_task(cfg: DictConfig, shape: str, training: str, out_dir: Path) -> tuple
     lib.save(out_dir / "libraries" / f"{shape}_{training}")
     log.info("%s/%s: %d steps, %d routes, learned in %.1f s, stability %s", shape, training, lib.n_steps,
              len(lib.routes), fit_s, lib.stability and lib.stability["passed"])  # fmt: skip
-    arrival = instantiate(cfg.skills.arrival)
+    arrival = instantiate(cfg.skills).arrival
     mod_kw = {k: v for k, v in OmegaConf.to_container(cfg.modulation, resolve=True).items() if k not in ("_target_", "mode")}
     engines = {mode: SkillEngine(lib, Modulation(mode=mode, **mod_kw), arrival) for mode in cfg.modes}
     gen = torch.Generator().manual_seed(derive_seed(cfg.experiment, shape, training, "starts", cfg.seed))
@@ -208,7 +206,7 @@ def figures(cfg: DictConfig, shape: str, tasks: dict[str, dict], fig_dir: Path) 
         seg = NoSegmenter() if k == 1 else FixedSegmenter([j / k for j in range(1, k)])
         g = torch.Generator().manual_seed(derive_seed(cfg.experiment, shape, "fig6", k, cfg.seed))
         lib_k = SkillLibrary.learn(train, seg(train), primitive=instantiate(cfg.ds), generator=g, check=False)
-        out = SkillEngine(lib_k, "none", instantiate(cfg.skills.arrival)).rollout(
+        out = SkillEngine(lib_k, "none", instantiate(cfg.skills).arrival).rollout(
             x0, dt=cfg.dt, n_steps=int(round(cfg.budget_s / cfg.dt)))
         panels.append((f"{k} step{'s' if k > 1 else ''} (equal time)", lib_k, out))
     panels.append((f"BP-GM-HMM: {lib.n_steps} steps", lib, base["outs"][("demo", "none")]))

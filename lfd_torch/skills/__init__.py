@@ -18,6 +18,7 @@ from lfd_torch.skills.arrival import Arrival, rate_floor, speed_cap
 from lfd_torch.skills.disturbances import PUSH_KINDS, PushPlan, random_pushes
 from lfd_torch.skills.engine import Decision, EngineRollout, SkillEngine, TickResult
 from lfd_torch.skills.library import LIBRARY_SCHEMA, Skill, SkillLibrary, default_fitter
+from lfd_torch.skills.settings import SkillSettings
 from lfd_torch.skills.stability import StabilityReport, check_stability, stability_samples
 from lfd_torch.skills.tree import DecisionVisitor, SkillTree
 
@@ -32,6 +33,7 @@ __all__ = [
     "Skill",
     "SkillEngine",
     "SkillLibrary",
+    "SkillSettings",
     "SkillTree",
     "StabilityReport",
     "TickResult",
