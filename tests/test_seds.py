@@ -131,3 +131,15 @@ def test_random_starts_converge(shape: str, seed: int) -> None:
     scale = float(span.norm())
     result = rollout(model, x0, 0.01, 20000, attractor=model.attractor, position_tol=1e-3 * scale, velocity_tol=float("inf"))
     assert bool(result.converged.all()), f"{int((~result.converged).sum())} of 200 starts did not converge"
+
+
+def test_likelihood_fit_that_leaves_the_representable_range_falls_back_instead_of_crashing() -> None:
+    """NShape, one demonstration, K = 9, likelihood objective: L-BFGS drives a covariance factor to where its
+    Cholesky fails; the fit must fall back to its initialisation (a certified model), not raise LinAlgError."""
+    from lfd_torch.data import load_lasa
+    from lfd_torch.preprocess import subsample
+
+    demos = subsample(load_lasa("NShape"), 2, keep_last=False)[[0]]
+    model = fit_seds(demos, objective="likelihood", n_components=9, generator=torch.Generator().manual_seed(0))
+    assert model.stability_certificate().certified
+    assert torch.isfinite(model(demos.positions[0])).all()

@@ -293,7 +293,10 @@ def fit_seds(
     except torch.linalg.LinAlgError:
         pass  # handled below: fall back to the initialisation
     with torch.no_grad():
-        final_loss = float(loss_fn(xs, vs)) if all(torch.isfinite(p).all() for p in params.parameters()) else math.nan
+        try:  # parameters that left the representable range make a covariance factorisation fail: fall back
+            final_loss = float(loss_fn(xs, vs)) if all(torch.isfinite(p).all() for p in params.parameters()) else math.nan
+        except torch.linalg.LinAlgError:
+            final_loss = math.nan
         if not math.isfinite(final_loss) or final_loss > initial_loss:
             for k, p in params.named_parameters():
                 p.copy_(initial[k])
