@@ -14,6 +14,11 @@ Three parts (single-threaded torch; OMP_NUM_THREADS=1 recommended):
              demonstration's length, no extra switch), median boundary error (% of the length, over the true
              switches, distance to the nearest detected switch; 100 % when none is detected), wall seconds.
 
+  membership subtask spaces (paper Sec. IV test p(x | A_m) >= p(x | A_m-)) on the families (``--seeds`` cases,
+             1 and 4 demonstrations) and on LASA Multi_Models_1..4 (all 7 demonstrations): per set the smallest
+             share, over steps, of a step's own samples inside its A_m (``own_min``; issue 7 asks >= 0.98) and the
+             largest share of the other steps' samples inside an A_m (``other_max``: how far the spaces overlap).
+
 Detected switches of a demonstration are the samples t > 0 whose step label differs from that of t - 1 (from the
 per-sample labels, whatever the method); the truth is ``SyntheticSteps.switch_times`` (the corner samples).
 
@@ -35,6 +40,7 @@ each feature z-scored; the finite-difference velocities of the data are mostly n
     OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts synthetic --seeds 10
     OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts synthetic --method ruptures hmmlearn
     OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts lasa scaling --json out.json
+    OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts membership --seeds 2
 """
 
 from __future__ import annotations
@@ -100,6 +106,37 @@ def bench_scaling(shape: str = "Angle", seed: int = 0, n_iterations: int = 10) -
         _, seg = _timed(demos[list(range(N))], seed, max_samples=60, n_iterations=n_iterations)
         rows.append({"part": "scaling_N", "shape": shape, "T": 60, "N": N,
                      "ms_per_sweep": 1e3 * seg.info["sampler_seconds"] / n_iterations})  # fmt: skip
+    return rows
+
+
+def membership_shares(seg: Any, demos: Any) -> tuple[float, float]:
+    """(own_min, other_max) of one segmentation (module docstring, part ``membership``)."""
+    x = torch.cat(demos.sequences())
+    lab = torch.cat(list(seg.labels))
+    inside = seg.membership(x.to(seg.space_mean))
+    own = [float(inside[lab == m, m].double().mean()) for m in range(seg.n_steps) if bool((lab == m).any())]
+    other = [float(inside[lab != m, m].double().mean()) for m in range(seg.n_steps) if bool((lab != m).any())]
+    return min(own), max(other, default=0.0)
+
+
+def bench_membership(seeds: int, families: tuple[str, ...], n_demos: tuple[int, ...],
+                     shapes: tuple[str, ...] = LASA_SHAPES[:4]) -> list[dict[str, Any]]:
+    """One row per data set: the subtask-space shares of ``segment`` with its default settings."""
+    from lfd_torch.segmentation import SegmentationWarning
+
+    rows = []
+    sets: list[tuple[str, int, int, Any]] = [(shape, 7, 0, None) for shape in shapes]
+    sets += [(f, n, seed, None) for f in families for n in n_demos for seed in range(seeds)]
+    for name, n, seed, _ in sets:
+        demos = load_lasa(name) if name in shapes else FAMILIES[name](
+            torch.Generator().manual_seed(data_seed(name, seed)), n).demos
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", SegmentationWarning)
+            seg = segment(demos, generator=torch.Generator().manual_seed(seed))
+        own, other = membership_shares(seg, demos)
+        rows.append({"part": "membership", "set": name, "n_demos": n, "seed": seed, "n_steps": seg.n_steps,
+                     "own_min": own, "other_max": other})  # fmt: skip
+        print(f"membership {name:>22} N={n} seed={seed}: own_min={own:.3f} other_max={other:.3f}", flush=True)
     return rows
 
 
@@ -309,7 +346,7 @@ def _print(rows: list[dict[str, Any]]) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--parts", nargs="+", default=["lasa", "scaling", "synthetic"],
-                        choices=["lasa", "scaling", "synthetic"])  # fmt: skip
+                        choices=["lasa", "scaling", "synthetic", "membership"])  # fmt: skip
     parser.add_argument("--shapes", nargs="+", default=list(LASA_SHAPES))
     parser.add_argument("--seeds", type=int, default=10, help="synthetic cases per family and number of demos")
     parser.add_argument("--method", nargs="+", default=["segment", "ruptures", "hmmlearn"], choices=METHODS,
@@ -326,6 +363,12 @@ def main() -> None:
     if "scaling" in args.parts:
         result["scaling"] = bench_scaling()
         _print(result["scaling"])
+    if "membership" in args.parts:
+        result["membership"] = bench_membership(args.seeds, tuple(args.families), tuple(args.n_demos))
+        rows_m = result["membership"]
+        print(f"membership: own_min over all sets {min(r['own_min'] for r in rows_m):.3f}, "
+              f"other_max median {statistics.median(r['other_max'] for r in rows_m):.3f}, "
+              f"max {max(r['other_max'] for r in rows_m):.3f}")  # fmt: skip
     if "synthetic" in args.parts:
         rows = synthetic_study(args.seeds, tuple(args.method), tuple(args.families), tuple(args.n_demos))
         summary = summarize_synthetic(rows)

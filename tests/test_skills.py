@@ -390,10 +390,6 @@ def test_mm3_every_start_finishes_the_task_under_pushes(which: str, request) -> 
     assert lib.stability["passed"]
 
 
-# Known failure (issue 8 item 7): with the stretch-mixture subtask spaces of the segmentation, up to 8 % (one demo)
-# and 13 % (seven demos) of a step's own states take the large-scale branch, at rests shared by two steps. The fix
-# belongs to the segmentation's A_m, not to the engine.
-@pytest.mark.xfail(strict=True, reason="subtask spaces lose a step's own states at shared rests (segmentation)")
 @pytest.mark.parametrize("which", ["mm3_one", "mm3_all"])
 def test_replayed_training_states_rarely_take_the_large_scale_branch(which: str, request) -> None:
     _, lib = request.getfixturevalue(which)

@@ -117,8 +117,8 @@ def field_observations(
         x: (N, T, d) positions.
         v: (N, T, d) velocities.
         valid: (N, T) bool, False on padding.
-        velocity_noise: sigma_v, standard deviation of the velocity noise per axis, a number or one per sequence
-            (N,), >= 0 (unit of v).
+        velocity_noise: sigma_v, standard deviation of the velocity noise per axis, a number, one per sequence
+            (N,) or one per sample (N, T), >= 0 (unit of v).
         direction_noise: sigma_u of the fields (the prior's expected direction noise).
         speed_floor: s0 is at least this (unit of v): for noise-free data, a direction at rest is still unreliable.
         centre, radius: the standardisation (None: from the valid samples of x).
@@ -129,8 +129,10 @@ def field_observations(
     if x.shape != v.shape or x.shape[:2] != valid.shape:
         raise ShapeMismatchError(f"x {tuple(x.shape)}, v {tuple(v.shape)}, valid {tuple(valid.shape)} differ")
     sv = torch.as_tensor(velocity_noise, dtype=x.dtype, device=x.device)
-    if sv.ndim > 1 or (sv.ndim == 1 and sv.shape[0] != x.shape[0]) or not bool((sv >= 0).all()):
-        raise InvalidArgumentError(f"velocity_noise must be >= 0, a number or one per sequence, got {velocity_noise!r}")
+    shape_ok = sv.ndim == 0 or (sv.ndim == 1 and sv.shape[0] == x.shape[0]) or (sv.ndim == 2 and sv.shape == x.shape[:2])
+    if not shape_ok or not bool((sv >= 0).all()):
+        raise InvalidArgumentError("velocity_noise must be >= 0: a number, one per sequence (N,) or one per sample "
+                                   f"(N, T), got {velocity_noise!r}")
     if not direction_noise > 0:
         raise InvalidArgumentError(f"direction_noise must be > 0, got {direction_noise!r}")
     sv = sv.reshape(-1, 1) if sv.ndim == 1 else sv

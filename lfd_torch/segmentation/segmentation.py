@@ -7,7 +7,7 @@ Notation:
     pieces   N tensors (n_i, 3) long, rows (step, first sample, end sample exclusive) in time order
     routes   R tuples of step indices in execution order; route_of (N,) the route of each demonstration
     attractors  (M, d) g_m
-    subtask space A_m: mixture of Gaussians over the positions of step m; log p(x | A_m) in
+    subtask space A_m: a set of Gaussians over positions (below); log p(x | A_m) in
         :meth:`Segmentation.log_density`.
 
 The model decides (NOTES.md sec. 2). A step of a demonstration is a maximal run of one HMM state: nothing
@@ -19,13 +19,34 @@ after the sampler creates, removes, merges or moves a step across a state switch
        (explicit-duration states, :func:`~lfd_torch.segmentation.transitions.expand_min_duration`), not a
        post-processing rule, and it is what NOTES.md sec. 2 asks of short runs: a sample whose velocity straddles a
        corner cannot open a step of its own;
-    3. the sampler works on a coarse grid (``max_samples`` points per sequence, stride k): its observations are
-       the velocities over 2 k samples, so a switch is known to the stride. Each switch is then placed at full
-       rate by the same likelihood: between the two states that the model put on either side, the change point
-       posterior p(t) ∝ exp(sum_{t' < t} l_a(t') + sum_{t' >= t} l_b(t')) / k) over t between the midpoints of
-       the neighbouring runs, l the field log-likelihood of the full-rate samples (each weighted 1 / k because k full-rate
-       samples carry the information of one coarse sample); the boundary is its median. This cannot create or
-       remove a step: it only resolves the time of a switch that the sampler found.
+    3. the sampler works on a coarse grid of n = ceil(T / k) points per sequence (k = ceil(T / ``max_samples``),
+       the time stride). Three choices make the observations what the emission assumes:
+       (a) velocities: the velocity at t is the least-squares slope of the positions x[t - k .. t + k]
+           (:func:`scale_velocities`). Under white position noise sigma it is the minimum-variance linear unbiased
+           estimate of a constant velocity, with noise sigma / (dt sqrt(sum_j j^2)) per axis, about 2 (k / 3)^(1/2)
+           times less than that of the chord between two grid points (3 times for k = 7): the evidence of a
+           direction change grows about 4 k / 3 times, so short legs and mild turns are seen;
+       (b) their noise: the reliability weight w_t of the emission (:mod:`.field`) uses that noise sample by
+           sample (:func:`velocity_noise`), larger where the window is cut by an end of the sequence. With one
+           noise level for all samples, the first and last velocities (the start and end rests) were trusted as if
+           they were interior ones, and their random directions opened steps of their own;
+       (c) the grid is equally spaced in path length, not in time (:func:`path_grid`): the path length is the sum
+           of the unbiased speed estimates (||v_t||^2 - d sigma_v,t^2)_+^(1/2) dt. A state is a field of
+           directions over positions, a geometric object; its likelihood should not depend on how long the robot
+           dwells somewhere. On a time grid a minimum-jerk rest at a corner holds several grid points whose
+           directions are noise (w_t small but not 0, because the speed estimate is noisy); a state that fits
+           those few random directions a little better than both neighbours collects more than the cost of one
+           more transition and opens a short extra step at the corner. On the path-length grid a rest holds no
+           grid point of its own, a leg gets grid points in proportion to its length whatever its timing, and
+           the minimum duration (item 2) becomes a minimum path length: ``min_length`` is read as a fraction of the
+           path (D = ceil(min_length n / T) grid points).
+       Each switch is then placed at full rate by the same likelihood: between the two states that the model put
+       on either side, the change point posterior p(t) ∝ exp(sum_{t' < t} l_a(t') + sum_{t' >= t} l_b(t')) / k)
+       over t between the midpoints of the neighbouring runs, l the field log-likelihood of the full-rate samples
+       (each weighted 1 / k because k full-rate samples carry the information of one grid point) under the fields
+       of the two states in the returned sample; the switch is its median. This cannot create or
+       remove a step: it only resolves the time of a switch that the sampler found. At a rest the samples carry no
+       direction information (w_t -> 0), the posterior is flat over the rest and the switch falls in its middle.
 Steps across demonstrations are matched by the model's features, not by their order (item 2 of the design):
 each demonstration is the sequence of the states of its runs; two demonstrations belong to one route when the
 states they share (a longest common subsequence of their run states) cover at least half of the samples of
@@ -36,17 +57,38 @@ consensus count. A state may recur in several steps (two runs of one state are t
 
 Attractor g_m: the mean over the pieces of step m of their last sample (the paper's eq. under Table I writes a
 sum; it means the mean); the last step of every route ends at the task attractor ``Demos.attractor``.
-Subtask space A_m: the positions of the samples of step m, summarised by a Gaussian per stretch of
-``min_length`` samples of every piece (mean and covariance of the stretch plus the position noise variance
-estimated from the data); p(x | A_m) is the equal-weight mixture of the step's stretches. The paper's A_m is "the
-emission Gaussian(s) of the state(s) of step m" (NOTES.md sec. 2); the emission here models directions, so the
-position density of a step is taken from its samples, at the resolution of the model's minimum duration. It
-falls off away from the step's data like a Gaussian, and a step's own samples are inside it (the test of paper
-Sec. IV) except where two steps meet.
+Subtask space A_m (paper Sec. III-B/IV; NOTES.md sec. 2 reads it as "the emission Gaussian(s) of the state(s) of
+step m"). The emission here models directions, not positions, so the position Gaussians are taken from the samples
+at the model's resolution:
+    (a) stretches: one Gaussian per stretch of ``min_length`` samples of every piece (mean and covariance of the
+        stretch plus the position noise variance estimated from the data), owned by the piece's step;
+    (b) junctions: one Gaussian per switch, from the samples around it weighted by the posterior probability that
+        their step label is wrong, u_t = P(tau <= t) before the switch and P(tau > t) from it on, tau ~ the change
+        point posterior of item 3 (weighted mean and covariance plus the noise variance). It belongs to both steps
+        of the switch. At a rest the direction reliability w_t -> 0 (:mod:`.field`), the emission cannot tell the
+        two states apart, the posterior of tau is flat over the rest and the junction covers it; at a sharp corner
+        the posterior is peaked and the junction is a point-sized Gaussian at the corner.
+A_m is the set of the Gaussians the model uses for the samples of step m: its stretches, its junctions, and the
+most responsible Gaussian (the largest density N(x_t; mu_j, Sigma_j) over all j) of every sample x_t of step m,
+whichever step built it (the hard assignment of the samples to the Gaussians, as the Viterbi path is for the
+HMM's states). Its density is that of the most responsible member (the classification likelihood),
+
+    p(x | A_m) = max_{j in A_m} N(x; mu_j, Sigma_j),   ``space_weights[m, j]`` = 1 if j in A_m else 0.
+
+Consequences: (i) every training sample x_t of step m lies in A_m in the sense of paper Sec. IV: its most
+responsible Gaussian j* is in A_m, so p(x_t | A_m) = max_j N(x_t; mu_j, Sigma_j) >= p(x_t | A_m') for every m'.
+(ii) Where two steps occupy the same place (the rest at a junction, an out-and-back leg, two legs crossing) they
+share Gaussians and their densities tie there: the position alone cannot tell those steps apart, and a state there
+belongs to both. (iii) Away from the data p(x | A_m) falls off like a Gaussian; a point is in A_m only if a
+Gaussian built on the data near it is in A_m. Why not the equal-weight mixture of the step's own stretches (the
+earlier construction): at a minimum-jerk rest the last samples of step m and the first of step m + 1 are the same
+points up to noise; any position density that gives them to one step loses them for the other, and with weights
+1 / J_m the shorter step took the whole rest, leaving 5-15 % of the longer step's samples outside its own space.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Sequence
@@ -59,7 +101,7 @@ from torch import Tensor
 
 from lfd_torch.data import Demos
 from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError, StoreError, TooFewSamplesError
-from lfd_torch.gmm import gaussian_log_density
+from lfd_torch.gmm import GaussianBank, gaussian_log_density
 from lfd_torch.segmentation.field import field_log_likelihood, field_observations
 from lfd_torch.segmentation.sampler import BetaProcessHMMSampler, SamplerResult
 
@@ -80,7 +122,8 @@ class SegmentationWarning(UserWarning):
     """A segmentation result a user should look at (e.g. a demonstration that forms a route of its own)."""
 
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
+DEFAULT_MIN_LENGTH = 0.04  # shortest step, fraction of a demonstration (``segment``'s default)
 
 
 # ---------------------------------------------------------------------------------------------- result
@@ -96,7 +139,8 @@ class Segmentation:
         route_of: (N,) long route of every demonstration.
         space_mean: (J, d) means of the Gaussians of the subtask spaces.
         space_covariance: (J, d, d).
-        space_weights: (M, J) mixture weights of every subtask space (rows sum to 1).
+        space_weights: (M, J) membership of the Gaussians in the subtask spaces (1: Gaussian j belongs to A_m, 0: it
+            does not; a Gaussian may belong to several steps); log p(x | A_m) = max_j log(w_mj N_j(x)).
         states: N tensors (T_i,) long HMM state of every sample (the step index when there is no HMM).
         step_state: (M,) long HMM state of every step (-1 without an HMM).
         sampler: the sampler's result (trace, acceptance), None without an HMM.
@@ -141,7 +185,7 @@ class Segmentation:
         return self.pieces[i][:, 0].tolist()
 
     def log_density(self, x: Tensor) -> Tensor:
-        """log p(x | A_m) for every step.
+        """log p(x | A_m) = max_j [log w_mj + log N(x; mu_j, Sigma_j)] for every step (module docstring).
 
         Args:
             x: (..., d) states.
@@ -153,10 +197,27 @@ class Segmentation:
             raise ShapeMismatchError(f"x has dimension {x.shape[-1]}, the segmentation {self.dim}")
         lead = x.shape[:-1]
         flat = x.reshape(-1, self.dim).to(self.space_mean)
-        comp = gaussian_log_density(flat, self.space_mean, self.space_covariance)  # (n, J)
-        logw = torch.log(self.space_weights.to(comp))  # (M, J), -inf where absent
-        out = torch.logsumexp(comp.unsqueeze(1) + logw.unsqueeze(0), dim=-1)  # (n, M)
+        bank, index, logw = self._density_tables
+        comp = bank.log_density_fm(flat.T)  # (J, n), feature-major
+        # each step gathers only its own Gaussians, (M, J_m max, n) instead of the dense (n, M, J); the reduction
+        # runs over a middle axis with the points contiguous (several times faster than over a short last axis)
+        members = comp.index_select(0, index.reshape(-1)).view(*index.shape, -1) + logw.unsqueeze(-1)
+        out = members.amax(1).T  # (n, M): the most responsible member
         return out.reshape(*lead, self.n_steps)
+
+    @functools.cached_property
+    def _density_tables(self) -> tuple[GaussianBank, Tensor, Tensor]:
+        """The subtask-space Gaussians with cached factors, and per step the indices of its Gaussians (M, J_max)
+        with their log weights (-inf on padding)."""
+        w = self.space_weights.to(self.space_mean)
+        rows = [torch.nonzero(w[m] > 0).reshape(-1) for m in range(w.shape[0])]
+        width = max(1, max(r.numel() for r in rows))
+        index = torch.zeros((len(rows), width), dtype=torch.long, device=w.device)
+        logw = torch.full((len(rows), width), float("-inf"), dtype=w.dtype, device=w.device)
+        for m, r in enumerate(rows):
+            index[m, : r.numel()] = r
+            logw[m, : r.numel()] = torch.log(w[m, r])
+        return GaussianBank(self.space_mean, self.space_covariance), index, logw
 
     def other_log_density(self, x: Tensor) -> Tensor:
         """log p(x | A_m-) = the largest log p(x | A_m') over the other steps m' != m (NOTES.md sec. 2).
@@ -323,24 +384,77 @@ def resolve_min_length(min_length: float, length: int) -> int:
     return max(n, 3)
 
 
-def scale_velocities(x: Tensor, stride: int, dt: float) -> Tensor:
-    """Velocities over one ``stride``: (x[t + k - h] - x[t - h]) / (k dt), h = floor(k / 2), shortened at the ends.
+def scale_velocities(x: Tensor, stride: int, dt: float, half_width: int | None = None) -> Tensor:
+    """Least-squares velocities at the time scale of the model's grid.
 
-    A window of one stride is the chord between two neighbours of the sampler's grid: one grid point at most
-    straddles a corner.
+    The velocity at sample t is the slope of the straight line fitted (least squares) to the positions
+    x[t - h .. t + h], h = ``half_width`` (default: the stride k, so the window spans the two grid intervals
+    around the grid point), shortened at the ends. Under white position noise of standard deviation sigma per axis
+    this is the minimum-variance linear unbiased estimate of a constant velocity over the window; its noise is
+    sigma / (dt sqrt(sum_j j^2)), sum_j j^2 = h (h + 1) (2 h + 1) / 3 (:func:`velocity_noise`). A window of one
+    stride on either side means that at most two grid points see a corner.
 
     Args:
         x: (T, d) positions at the full rate; stride: k >= 1; dt: sampling interval (s).
 
     Returns:
-        (T, d) velocities at the time scale of the model's grid.
+        (T, d) velocities.
     """
     T = x.shape[0]
+    h = stride if half_width is None else int(half_width)
     idx = torch.arange(T, device=x.device)
-    h = stride // 2
-    lo, hi = (idx - h).clamp_min(0), (idx + max(stride - h, 1)).clamp_max(T - 1)
-    span = (hi - lo).clamp_min(1).to(x.dtype) * dt
-    return (x[hi] - x[lo]) / span.unsqueeze(-1)
+    lo, hi = (idx - h).clamp_min(0), (idx + h).clamp_max(T - 1) + 1  # window [lo, hi)
+    j = idx.to(x.dtype)
+    zero = x.new_zeros(1)
+    c0 = torch.cat([zero, torch.ones_like(j).cumsum(0)])
+    c1 = torch.cat([zero, j.cumsum(0)])
+    c2 = torch.cat([zero, (j * j).cumsum(0)])
+    cx = torch.cat([x.new_zeros(1, x.shape[1]), x.cumsum(0)])
+    cjx = torch.cat([x.new_zeros(1, x.shape[1]), (j.unsqueeze(-1) * x).cumsum(0)])
+    n, s1, s2 = c0[hi] - c0[lo], c1[hi] - c1[lo], c2[hi] - c2[lo]
+    sx, sjx = cx[hi] - cx[lo], cjx[hi] - cjx[lo]
+    denom = (n * s2 - s1 * s1).clamp_min(torch.finfo(x.dtype).tiny)
+    return (n.unsqueeze(-1) * sjx - s1.unsqueeze(-1) * sx) / (denom.unsqueeze(-1) * dt)
+
+
+def velocity_noise(sigma_x: float, length: int, stride: int, dt: float, half_width: int | None = None) -> Tensor:
+    """(T,) standard deviation per axis of every velocity of :func:`scale_velocities` under white position noise.
+
+    The slope of a least-squares line through n samples at times j dt has variance sigma^2 / (dt^2 sum_j (j -
+    jbar)^2), sum_j (j - jbar)^2 = n (n^2 - 1) / 12: h (h + 1) (2 h + 1) / 3 inside the sequence, less where the
+    window is cut by an end (a velocity there is noisier, and its direction is trusted less, :mod:`.field`).
+    """
+    h = stride if half_width is None else int(half_width)
+    idx = torch.arange(length, dtype=torch.float64, device="cpu")
+    n = (idx + h).clamp_max(length - 1) - (idx - h).clamp_min(0) + 1
+    sjj = (n * (n * n - 1.0) / 12.0).clamp_min(1.0)
+    return sigma_x / (dt * sjj.sqrt())
+
+
+def path_grid(velocity: Tensor, noise: Tensor, stride: int, dt: float) -> Tensor:
+    """The sampler's grid: ceil(T / k) samples equally spaced in estimated path length (module docstring, item 3).
+
+    The path length is the sum of the unbiased speed estimates s_t = (||v_t||^2 - d sigma_v,t^2)_+^(1/2) times dt,
+    so a rest (s_t ~ 0) occupies no grid point of its own and a leg gets grid points in proportion to its length,
+    whatever its timing. Without motion (a path of length 0) the grid is every k-th sample.
+
+    Args:
+        velocity: (T, d) velocities (:func:`scale_velocities`); noise: (T,) their noise per axis
+            (:func:`velocity_noise`); stride: k; dt: sampling interval.
+
+    Returns:
+        (n,) increasing long sample indices, n <= ceil(T / k).
+    """
+    T, d = velocity.shape
+    n = max(1, math.ceil(T / stride))
+    speed = (velocity.square().sum(-1) - d * noise.square()).clamp_min(0.0).sqrt()
+    length = torch.cumsum(speed * dt, 0)
+    total = float(length[-1])
+    if not total > 0.0:
+        return torch.arange(0, T, stride, device=velocity.device)
+    targets = (torch.arange(n, dtype=length.dtype, device=velocity.device) + 0.5) * (total / n)
+    idx = torch.searchsorted(length, targets).clamp_max(T - 1)
+    return torch.unique(idx)
 
 
 def position_noise(sequences: Sequence[Tensor]) -> float:
@@ -438,28 +552,46 @@ def _align_route(seqs: list[list[int]], fracs: list[list[float]]) -> tuple[list[
     return steps, [[index[sid] for sid in assign[i]] for i in range(len(seqs))]
 
 
-def _refine_switch(ll: Tensor, a: int, b: int, lo: int, hi: int, stride: int) -> int:
-    """Median of the change-point posterior between states a | b on t in [lo, hi] (module docstring, item 3)."""
+def _refine_switch(ll: Tensor, a: int, b: int, lo: int, hi: int, stride: int) -> tuple[int, Tensor]:
+    """Median of the change-point posterior between states a | b on t in [lo, hi] (module docstring, item 3).
+
+    Returns:
+        the switch (first sample of b) and the posterior probability that sample t, lo <= t < hi, is on the other
+        side of it than its label says: P(tau <= t) before the switch, P(tau > t) from it on ((hi - lo,)).
+    """
     seg = ll[lo:hi]  # (L, K)
     diff = (seg[:, a] - seg[:, b]) / stride  # evidence for a over b of every full-rate sample
     # score(t) = sum_{t' < t} diff(t') (+ const): samples before t with a, from t on with b
     score = torch.cat([diff.new_zeros(1), diff.cumsum(0)])  # t = lo .. hi
     post = torch.softmax(score, 0)
+    cdf = post.cumsum(0)  # cdf[j] = P(tau <= lo + j)
     half = post.new_tensor([0.5])
-    return lo + int(torch.searchsorted(post.cumsum(0), half).clamp_max(hi - lo))
+    cut = int(torch.searchsorted(cdf, half).clamp_max(hi - lo))
+    in_b = cdf[:-1]  # P(sample lo + j belongs to b) = P(tau <= lo + j)
+    j = torch.arange(hi - lo, device=ll.device)
+    doubt = torch.where(j < cut, in_b, 1.0 - in_b).clamp(0.0, 1.0)
+    return lo + cut, doubt
 
 
 def _subtask_spaces(
-    demos: Demos, pieces: list[list[tuple[int, int, int]]], M: int, stretch: int, noise_var: float
+    demos: Demos, pieces: list[list[tuple[int, int, int]]], M: int, stretch: int, noise_var: float,
+    junctions: list[list[tuple[int, Tensor]]] | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Gaussians of every stretch of ``stretch`` samples of every piece (module docstring) and step weights."""
+    """Gaussians of every stretch of ``stretch`` samples of every piece and their membership in the steps.
+
+    Returns:
+        means (J, d), covariances (J, d, d) and the (M, J) 0/1 membership: Gaussian j belongs to A_m when it is a
+        stretch of step m or the most responsible Gaussian of at least one sample of step m (module docstring).
+    """
     d = demos.dim
     means, covs, owner = [], [], []
     x_all = demos.samples()[0]
     floor = noise_var + float(x_all.var(0).sum()) * 1e-6 + torch.finfo(demos.dtype).eps
     eye = torch.eye(d, dtype=demos.dtype, device=demos.device)
+    pts_of_step: list[list[Tensor]] = [[] for _ in range(M)]
     for i, plist in enumerate(pieces):
         for step, a, b in plist:
+            pts_of_step[step].append(demos.positions[i, a:b])
             n = b - a
             n_str = max(1, n // stretch)
             edges = [a + round(j * n / n_str) for j in range(n_str + 1)]
@@ -471,10 +603,31 @@ def _subtask_spaces(
                 means.append(mu)
                 covs.append(0.5 * (cov + cov.T))
                 owner.append(step)
+    shared: list[tuple[int, int]] = []  # (step before, step after) of every junction Gaussian
+    for i, plist in enumerate(pieces):
+        for r, (lo, doubt) in enumerate(junctions[i] if junctions is not None else []):
+            u = doubt.to(demos.dtype)
+            total = float(u.sum())
+            if total <= 0.0:
+                continue
+            pts = demos.positions[i, lo : lo + u.shape[0]]
+            mu = (u.unsqueeze(-1) * pts).sum(0) / total
+            c = pts - mu
+            cov = (u.unsqueeze(-1) * c).T @ c / total + floor * eye
+            means.append(mu)
+            covs.append(0.5 * (cov + cov.T))
+            shared.append((plist[r][0], plist[r + 1][0]))
+    mean, cov = torch.stack(means), torch.stack(covs)
     owner_t = torch.tensor(owner, device=demos.device)
-    weights = torch.nn.functional.one_hot(owner_t, M).T.to(demos.dtype)  # (M, J)
-    weights = weights / weights.sum(-1, keepdim=True).clamp_min(1.0)
-    return torch.stack(means), torch.stack(covs), weights
+    member = torch.zeros(M, mean.shape[0], dtype=torch.bool, device=demos.device)
+    member[:, : len(owner)] = torch.nn.functional.one_hot(owner_t, M).T.bool()  # the step's own stretches
+    for j, (a, b) in enumerate(shared):
+        member[a, len(owner) + j] = member[b, len(owner) + j] = True
+    for m in range(M):
+        if pts_of_step[m]:
+            best = gaussian_log_density(torch.cat(pts_of_step[m]), mean, cov).argmax(-1)  # (n_m,)
+            member[m, best] = True
+    return mean, cov, member.to(demos.dtype)
 
 
 def _check_demos(demos: Demos | Sequence[Tensor], min_len_param: float) -> Demos:
@@ -498,6 +651,7 @@ def _assemble(
     noise_var: float,
     sampler: SamplerResult | None,
     info: dict[str, Any],
+    junctions: list[list[tuple[int, Tensor]]] | None = None,
 ) -> Segmentation:
     M = len(step_state)
     dev = demos.device
@@ -514,7 +668,7 @@ def _assemble(
     attractors = ends / count.clamp_min(1.0).unsqueeze(-1)
     for r in routes:
         attractors[r[-1]] = demos.attractor.to(attractors)  # every route ends at the task's goal
-    mean, cov, weights = _subtask_spaces(demos, pieces, M, stretch, noise_var)
+    mean, cov, weights = _subtask_spaces(demos, pieces, M, stretch, noise_var, junctions)
     return Segmentation(
         labels=tuple(labels),
         pieces=tuple(torch.tensor(p, dtype=torch.long, device=dev).reshape(-1, 3) for p in pieces),
@@ -536,7 +690,9 @@ def _steps_from_bounds(demos: Demos, bounds: list[list[int]], info: dict[str, An
     M = len(bounds[0]) - 1
     pieces = [[(m, b[m], b[m + 1]) for m in range(M)] for b in bounds]
     states = [torch.cat([torch.full((b[m + 1] - b[m],), m, dtype=torch.long, device=demos.device) for m in range(M)]) for b in bounds]
-    stretch = max(3, min(b[m + 1] - b[m] for b in bounds for m in range(M)))
+    # the resolution of the subtask-space Gaussians: the default minimum step of the HMM (a whole piece as one
+    # Gaussian would let a step take a whole leg of another when one of its samples is best explained by it)
+    stretch = max(3, min(resolve_min_length(DEFAULT_MIN_LENGTH, n) for n in demos.lengths.tolist()))
     noise = position_noise([s.to(torch.float64) for s in demos.sequences()])
     return _assemble(demos, pieces, [list(range(M))], [0] * len(bounds), states, [-1] * M, stretch, noise**2,
                      None, info)
@@ -547,7 +703,7 @@ def segment(
     demos: Demos | Sequence[Tensor],
     *,
     generator: torch.Generator,
-    min_length: float = 0.04,
+    min_length: float = DEFAULT_MIN_LENGTH,
     max_samples: int = 80,
     direction_noise: float = 0.2,
     extra_dof: float = 30.0,
@@ -572,16 +728,18 @@ def segment(
             are used (velocities are re-estimated at the model's time scale, :func:`scale_velocities`).
         generator: source of all randomness (CPU generator for CPU data).
         min_length: shortest step (the HMM's minimum state duration), samples (>= 1) or fraction of each
-            sequence's length (< 1); every sequence needs at least 2 * min_length samples.
-        max_samples: points per sequence on the sampler's grid (stride k = ceil(T_i / max_samples)).
+            sequence's length (< 1); every sequence needs at least 2 * min_length samples. On the sampler's
+            path-length grid it is the same fraction of the path (module docstring, item 3).
+        max_samples: points per sequence on the sampler's grid, at most (time stride k = ceil(T_i / max_samples),
+            ceil(T_i / k) points equally spaced in path length, module docstring item 3).
         direction_noise: tolerance of a state's direction field, the prior expected direction noise (unit
             vectors, ~radians).
         extra_dof: weight of that prior expectation (pseudo-observations of the noise covariance).
         Remaining keyword arguments: see :class:`BetaProcessHMMSampler`.
 
     Returns:
-        Segmentation; ``info`` holds timings, the strides, the minimum duration on the grid, the position noise
-        estimate and the routes.
+        Segmentation; ``info`` holds timings, the strides, the grid (full-rate sample of every grid point), the
+        minimum duration on the grid, the position noise estimate, the interior velocity noise and the coarse runs.
 
     Raises:
         InvalidArgumentError: 1-D data or bad hyperparameters.
@@ -604,11 +762,13 @@ def segment(
     vel_full = [scale_velocities(s, k, dt) for s, k, dt in zip(seqs_full, strides, dts)]
     speeds = torch.cat([v.norm(dim=-1) for v in vel_full])
     s_floor = 1e-3 * float(speeds.median())  # noise-free data: directions are unreliable only at rest
-    sigma_v = [math.sqrt(2.0) * sigma_x / (k * dt) for k, dt in zip(strides, dts)]  # noise of a chord velocity
-    xs = [s[::k] for s, k in zip(seqs_full, strides)]
-    vs = [v[::k] for v, k in zip(vel_full, strides)]
+    sigma_v_full = [velocity_noise(sigma_x, s.shape[0], k, dt).to(s) for s, k, dt in zip(seqs_full, strides, dts)]
+    sigma_v = [float(sv.min()) for sv in sigma_v_full]  # inside the sequences
+    grid = [path_grid(v, sv, k, dt) for v, sv, k, dt in zip(vel_full, sigma_v_full, strides, dts)]
+    xs = [s[g] for s, g in zip(seqs_full, grid)]
+    vs = [v[g] for v, g in zip(vel_full, grid)]
     min_lens = [resolve_min_length(min_length, s.shape[0]) for s in seqs_full]
-    duration = max(1, min(math.ceil(m / k) for m, k in zip(min_lens, strides)))
+    duration = max(1, min(math.ceil(m * g.shape[0] / s.shape[0]) for m, g, s in zip(min_lens, grid, seqs_full)))
     sampler = BetaProcessHMMSampler(
         feature_mass=feature_mass, feature_concentration=feature_concentration,
         transition_concentration=transition_concentration, stickiness=stickiness,
@@ -617,32 +777,41 @@ def segment(
         birth_window=birth_window, birth_prior_mix=birth_prior_mix,
         resample_hyperparameters=resample_hyperparameters, progress=progress,
     )  # fmt: skip
-    sigma_v_t = torch.tensor(sigma_v, dtype=torch.float64, device=seqs_full[0].device)
+    n_max = max(x.shape[0] for x in xs)
+    sigma_v_t = torch.stack([torch.cat([sv[g], sv[g][-1:].expand(n_max - g.shape[0])])
+                             for sv, g in zip(sigma_v_full, grid)])  # (N, T) on the grid, padded
     result = sampler.run(xs, vs, generator, min_duration=duration, velocity_noise=sigma_v_t, speed_floor=s_floor)
     t1 = time.perf_counter()
     # full-rate state sequences: the coarse runs, each switch placed by the change-point posterior
     runs_all: list[list[tuple[int, int, int]]] = []  # (state, start, end) at full rate
     states_full = []
+    junctions: list[list[tuple[int, Tensor]]] = []  # per switch: (first sample, label doubt of each sample)
     for i, (xf, vf, k) in enumerate(zip(seqs_full, vel_full, strides)):
         Ti = xf.shape[0]
         n_c = xs[i].shape[0]
         st = result.states[i, :n_c]
         starts, _, values = runs(st)
         obs = field_observations(xf.unsqueeze(0), vf.unsqueeze(0), torch.ones(1, Ti, dtype=torch.bool,
-                                 device=xf.device), velocity_noise=sigma_v[i], direction_noise=direction_noise,
-                                 speed_floor=s_floor, centre=result.centre, radius=result.radius)
+                                 device=xf.device), velocity_noise=sigma_v_full[i].unsqueeze(0),
+                                 direction_noise=direction_noise, speed_floor=s_floor, centre=result.centre,
+                                 radius=result.radius)
         ll = field_log_likelihood(obs.z, obs.u, obs.w, result.field.unsqueeze(0), result.noise.unsqueeze(0),
                                   robust_dof)[0]
         cuts = [0]
-        coarse = (starts * k).tolist()
+        junc: list[tuple[int, Tensor]] = []
+        coarse = grid[i][starts].tolist()  # full-rate sample of every run's first grid point
         for r in range(1, len(coarse)):
             lo = max(cuts[-1] + 1, (coarse[r - 1] + coarse[r]) // 2)
             hi = min(Ti - 1, (coarse[r] + (coarse[r + 1] if r + 1 < len(coarse) else Ti)) // 2)
             if hi <= lo:
                 cuts.append(min(max(coarse[r], cuts[-1] + 1), Ti - 1))
+                junc.append((cuts[-1], xf.new_zeros(0)))
                 continue
-            cuts.append(_refine_switch(ll, int(values[r - 1]), int(values[r]), lo, hi, k))
+            cut, doubt = _refine_switch(ll, int(values[r - 1]), int(values[r]), lo, hi, k)
+            cuts.append(cut)
+            junc.append((lo, doubt))
         cuts.append(Ti)
+        junctions.append(junc)
         rl = [(int(values[r]), cuts[r], cuts[r + 1]) for r in range(len(cuts) - 1)]
         runs_all.append(rl)
         states_full.append(torch.cat([torch.full((b - a,), s, dtype=torch.long, device=xf.device) for s, a, b in rl]))
@@ -667,10 +836,12 @@ def segment(
         "min_duration": duration,
         "position_noise": sigma_x,
         "velocity_noise": sigma_v,
-        "coarse_runs": [[(s, a // k) for s, a, _ in rl] for rl, k in zip(runs_all, strides)],
+        "coarse_runs": [[(s, int(torch.searchsorted(g, a))) for s, a, _ in rl] for rl, g in zip(runs_all, grid)],
+        "grid": [g.tolist() for g in grid],
     }
     stretch = max(3, min(min_lens))
-    return _assemble(demos, pieces, routes, route_of, states_full, step_state, stretch, sigma_x**2, result, info)
+    return _assemble(demos, pieces, routes, route_of, states_full, step_state, stretch, sigma_x**2, result, info,
+                     junctions)
 
 
 class BPGMHMMSegmenter:
