@@ -17,6 +17,7 @@ from scipy.stats import multivariate_normal
 from conftest import requires_cuda
 from lfd_torch.data import Demos, load_lasa
 from lfd_torch.ds import LPVDS, SEDS, StablePrimitive, fit_lpvds, fit_seds, load_primitive, quadratic_lyapunov_derivative
+from lfd_torch.gmm import PCGMMFitter
 from lfd_torch.errors import CertificationError, ShapeMismatchError, StoreError
 from lfd_torch.gmm import fit_em
 from lfd_torch.rollout import rollout
@@ -193,3 +194,24 @@ class TestSEDSContract(PrimitiveContract):
     @pytest.fixture
     def demos(self) -> Demos:
         return _fitted("SEDS")[1]
+
+
+def test_saved_primitive_detects_a_flipped_bit_and_random_bytes(tmp_path) -> None:
+    from lfd_torch.ds import load_primitive
+    from lfd_torch.errors import StoreError
+    from lfd_torch.store.checksum import payload_digest
+
+    demos = load_lasa("Angle")[[0, 1]]
+    model = fit_lpvds(demos, gmm=PCGMMFitter(), generator=torch.Generator().manual_seed(0))
+    path = model.save(tmp_path / "m.pt")
+    state = torch.load(path, weights_only=True)
+    assert state["sha256"] == payload_digest(state)
+    state["gmm"]["means"][0, 0] += 1e-9  # a change far below any shape or certificate check
+    torch.save(state, tmp_path / "flipped.pt")
+    with pytest.raises(StoreError, match="checksum"):
+        load_primitive(tmp_path / "flipped.pt")
+    (tmp_path / "random.pt").write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(StoreError):
+        load_primitive(tmp_path / "random.pt")
+    again = load_primitive(path)
+    assert torch.equal(again.A, model.A)

@@ -468,3 +468,24 @@ def test_collect_cli(tmp_path: Path, capsys) -> None:
     printed = capsys.readouterr().out
     pd.testing.assert_frame_equal(pd.read_csv(__import__("io").StringIO(printed)), expected, check_dtype=False)
     assert collect_main([str(tmp_path / "missing")]) == 2
+
+
+def test_next_save_removes_temporaries_of_killed_writers(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    from lfd_torch.store import atomic_write
+
+    target = tmp_path / "table.parquet"
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead_pid = int(dead.stdout)
+    stale = tmp_path / f".table.parquet.{dead_pid}.0123abcd.tmp"
+    stale.write_bytes(b"half")
+    live = tmp_path / f".table.parquet.{os.getppid()}.4567ef.tmp"  # a live process: a concurrent writer, kept
+    live.write_bytes(b"in progress")
+    other = tmp_path / f".other.parquet.{dead_pid}.89ab.tmp"  # another destination: not ours to clean
+    other.write_bytes(b"x")
+    atomic_write(target, lambda p: p.write_bytes(b"new"))
+    assert target.read_bytes() == b"new"
+    assert not stale.exists() and live.exists() and other.exists()

@@ -28,6 +28,7 @@ import dataclasses
 import functools
 import json
 import os
+import pickle
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +40,7 @@ from torch import Tensor
 from lfd_torch.errors import CertificationError, NonFiniteError, ShapeMismatchError, StoreError, UnknownNameError
 from lfd_torch.gmm import GMM, GaussianBank
 from lfd_torch.store import atomic_path
+from lfd_torch.store.checksum import DIGEST_KEY, payload_digest, verify_digest
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -331,6 +333,7 @@ class StablePrimitive:
             The path written.
         """
         state = self.state_dict()
+        state[DIGEST_KEY] = payload_digest(state)
         with atomic_path(path) as tmp:
             torch.save(state, tmp)
         return Path(path)
@@ -342,10 +345,11 @@ class StablePrimitive:
         """Read a file written by :meth:`save` (``weights_only=True``); see :meth:`from_state_dict`."""
         try:
             state = torch.load(Path(path), map_location="cpu", weights_only=True)
-        except (OSError, RuntimeError, EOFError, ValueError) as exc:
+        except (OSError, RuntimeError, EOFError, ValueError, pickle.UnpicklingError) as exc:
             raise StoreError(f"cannot read primitive file {path}: {exc}") from exc
         if not isinstance(state, Mapping):
             raise StoreError(f"{path} does not hold a primitive state dict")
+        verify_digest(state, f"primitive file {path}")
         return cls.from_state_dict(state, dtype=dtype, device=device)
 
     def __repr__(self) -> str:

@@ -5,7 +5,8 @@ rename is atomic), named ``.{name}.{pid}.{uuid}.tmp`` so that concurrent writers
 collectors can recognise and skip it. Once the writer returns, the temporary file is flushed to disk
 (``fsync``) and renamed over the destination with :func:`os.replace`; the directory entry is then fsynced
 too. If the writer raises (or the process is interrupted with an exception), the temporary file is removed
-and the destination is left untouched.
+and the destination is left untouched. A process killed mid-write leaves its temporary file; the next atomic write
+to the same destination removes it (:func:`remove_stale_temps`: files whose writer process no longer exists).
 
 A writer must not infer the file format from the temporary file's suffix (it ends in ``.tmp``): pass the
 format explicitly (``savefig(..., format="png")``).
@@ -21,13 +22,57 @@ from pathlib import Path
 
 from lfd_torch.errors import StoreError
 
-__all__ = ["atomic_path", "atomic_write", "is_temp_file", "TEMP_SUFFIX"]
+__all__ = ["atomic_path", "atomic_write", "is_temp_file", "remove_stale_temps", "TEMP_SUFFIX"]
 
 TEMP_SUFFIX = ".tmp"
 
 
 def _temp_name(path: Path) -> Path:
     return path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex}{TEMP_SUFFIX}")
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def remove_stale_temps(path: str | os.PathLike[str]) -> list[Path]:
+    """Delete temporary files that interrupted atomic writes of ``path`` left behind (their process is gone).
+
+    A killed writer cannot clean up after itself; the next save to the same place does. Temporary files of live
+    processes (a concurrent writer) are kept. Returns the files removed.
+    """
+    final = Path(path)
+    removed = []
+    prefix = f".{final.name}."
+    try:
+        candidates = list(final.parent.glob(f".{glob_escape(final.name)}.*{TEMP_SUFFIX}"))
+    except OSError:
+        return removed
+    for tmp in candidates:
+        middle = tmp.name[len(prefix) : -len(TEMP_SUFFIX)]
+        pid_text = middle.split(".", 1)[0]
+        if not pid_text.isdigit():
+            continue
+        pid = int(pid_text)
+        if pid == os.getpid() or _pid_alive(pid):
+            continue
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+            removed.append(tmp)
+    return removed
+
+
+def glob_escape(name: str) -> str:
+    """``name`` with glob metacharacters escaped."""
+    import glob
+
+    return glob.escape(name)
 
 
 def is_temp_file(path: str | os.PathLike[str]) -> bool:
@@ -90,6 +135,7 @@ def atomic_path(path: str | os.PathLike[str], *, fsync: bool = True) -> Iterator
         final.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise StoreError(f"cannot create directory {final.parent}: {exc}") from exc
+    remove_stale_temps(final)
     tmp = _temp_name(final)
     try:
         yield tmp
