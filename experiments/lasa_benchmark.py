@@ -43,8 +43,6 @@ import torch
 from tqdm import tqdm
 
 torch.set_num_threads(1)  # the busy-waiting default pool is ~10x slower on a loaded 2-core box
-from hydra.core.hydra_config import HydraConfig
-from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
@@ -54,7 +52,7 @@ from lfd_torch.metrics import cosine_dissimilarity, dtw_distance, swept_area, ve
 from lfd_torch.modulation import Modulation
 from lfd_torch.preprocess import subsample
 from lfd_torch.skills import SkillEngine, SkillLibrary
-from lfd_torch.store import atomic_write, finished_part, run_manifest, write_table
+from lfd_torch.store import atomic_write, finished_part, prepare_job, write_table
 from lfd_torch.utils import derive_seed
 from lfd_torch.viz import violin_grid
 
@@ -96,15 +94,11 @@ def fitter(primitive_cfg: DictConfig) -> Any:
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
-    if not isinstance(cfg.seed, int) or not isinstance(cfg.fold, int):
-        raise TypeError(f"seed and fold must be integers, got {cfg.seed!r}, {cfg.fold!r}")
-    multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
-    if cfg.get("publish") and multirun:
-        raise ValueError("publish=true in a multirun would let every job overwrite the published table; "
-                         "merge the sweep with `python -m lfd_torch.store.collect` instead")
-    out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(cfg.get("out_dir", "."))
+    if isinstance(cfg.fold, bool) or not isinstance(cfg.fold, int):
+        raise TypeError(f"fold must be an integer, got {cfg.fold!r}")
+    job = prepare_job(cfg)
+    out_dir, manifest = job.out_dir, job.manifest
     shapes = list(LASA_NAMES) if cfg.shapes == "all" else [str(s) for s in cfg.shapes]
-    manifest = run_manifest(cfg, seed=cfg.seed)
     done = finished_part(out_dir / "results.parquet", manifest) if cfg.resume else None
     if done is not None:  # a re-run sweep (same hydra.sweep.dir) skips its finished jobs
         log.info("%s already holds this job's rows (config %s); skipped", out_dir, manifest["config_hash"])

@@ -36,8 +36,6 @@ import pandas as pd
 import torch
 
 torch.set_num_threads(1)  # the busy-waiting default pool is ~10x slower on a loaded 2-core box
-from hydra.core.hydra_config import HydraConfig
-from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
@@ -48,7 +46,7 @@ from lfd_torch.preprocess.regularize import resample
 from lfd_torch.segmentation import FixedSegmenter, NoSegmenter
 from lfd_torch.skills import SkillEngine, SkillLibrary, random_pushes
 from lfd_torch.skills.plot import plot_entropy, plot_rollout_panels
-from lfd_torch.store import atomic_write, run_manifest, write_table
+from lfd_torch.store import atomic_write, prepare_job, write_table
 from lfd_torch.utils import derive_seed
 
 log = logging.getLogger(__name__)
@@ -254,14 +252,8 @@ def summary(table: pd.DataFrame) -> pd.DataFrame:
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
-    if not isinstance(cfg.seed, int):
-        raise TypeError(f"seed must be an integer, got {cfg.seed!r}")
-    multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
-    if cfg.publish and multirun:
-        raise ValueError("publish=true in a multirun would let every job overwrite the published results; "
-                         "merge the sweep with `python -m lfd_torch.store.collect` instead")
-    out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(cfg.get("out_dir", "."))
-    manifest = run_manifest(cfg, seed=cfg.seed)
+    job = prepare_job(cfg)
+    out_dir, manifest = job.out_dir, job.manifest
     rows: list[dict[str, Any]] = []
     written: list[Path] = []
     fig_dir = Path(cfg.paths.figures) if cfg.publish else out_dir / "figures"

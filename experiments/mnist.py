@@ -40,8 +40,6 @@ import torch
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 torch.set_num_threads(1)  # the busy-waiting default pool is ~10x slower on a loaded 2-core box
-from hydra.core.hydra_config import HydraConfig  # noqa: E402
-from hydra.types import RunMode  # noqa: E402
 from hydra.utils import instantiate  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
@@ -50,7 +48,7 @@ from lfd_torch.errors import LfdError  # noqa: E402
 from lfd_torch.metrics import dtw_distance, swept_area  # noqa: E402
 from lfd_torch.rollout import rollout  # noqa: E402
 from lfd_torch.skills import SkillEngine, SkillLibrary  # noqa: E402
-from lfd_torch.store import atomic_write, run_manifest, write_table  # noqa: E402
+from lfd_torch.store import atomic_write, prepare_job, write_table  # noqa: E402
 from lfd_torch.utils import derive_seed  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -281,14 +279,8 @@ def summary(table: pd.DataFrame) -> pd.DataFrame:
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """All digits of ``cfg.digits``; returns the table, the summary and the paths written."""
-    if not isinstance(cfg.seed, int):
-        raise TypeError(f"seed must be an integer, got {cfg.seed!r}")
-    multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
-    if cfg.publish and multirun:
-        raise ValueError("publish=true in a multirun would let every job overwrite the published results; "
-                         "merge the sweep with `python -m lfd_torch.store.collect` instead")  # fmt: skip
-    out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(cfg.get("out_dir", "."))
-    manifest = run_manifest(cfg, seed=cfg.seed)
+    job = prepare_job(cfg)
+    out_dir, manifest = job.out_dir, job.manifest
     t_start = time.perf_counter()
     rows: list[dict[str, Any]] = []
     tasks: dict[int, dict] = {}

@@ -489,3 +489,16 @@ def test_next_save_removes_temporaries_of_killed_writers(tmp_path):
     atomic_write(target, lambda p: p.write_bytes(b"new"))
     assert target.read_bytes() == b"new"
     assert not stale.exists() and live.exists() and other.exists()
+
+
+def test_prepare_job_checks_the_seed_and_resolves_the_folder(tmp_path):
+    from omegaconf import OmegaConf
+
+    from lfd_torch.errors import InvalidArgumentError
+    from lfd_torch.store import prepare_job
+
+    job = prepare_job(OmegaConf.create({"seed": 3, "out_dir": str(tmp_path), "x": 1}))
+    assert job.out_dir == tmp_path and job.manifest["seed"] == 3 and not job.multirun
+    for bad in ("3", 2.0, True, None):
+        with pytest.raises(InvalidArgumentError, match="seed"):
+            prepare_job(OmegaConf.create({"seed": bad}))

@@ -29,6 +29,7 @@ from lfd_torch.store.manifest import (
     git_sha,
     run_manifest,
 )
+from lfd_torch.store.job import JobContext, prepare_job
 from lfd_torch.store.sweep import PartialSweepWarning, collect, find_parts, finished_part
 from lfd_torch.store.table import (
     KEY_COLUMNS,
@@ -41,6 +42,8 @@ from lfd_torch.store.table import (
 )
 
 __all__ = [
+    "JobContext",
+    "prepare_job",
     "atomic_path",
     "atomic_write",
     "is_temp_file",
