@@ -12,4 +12,8 @@ try:
 except PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.0.0+unknown"
 
+from lfd_torch.store.paths import register_resolvers as _register_resolvers
+
+_register_resolvers()  # ${lfd_root:} in the Hydra configs (conf/paths)
+
 __all__ = ["__version__", "data", "ds", "errors", "gmm", "metrics", "modulation", "preprocess", "rollout", "segmentation", "skills", "store", "utils", "viz"]

@@ -502,3 +502,21 @@ def test_prepare_job_checks_the_seed_and_resolves_the_folder(tmp_path):
     for bad in ("3", 2.0, True, None):
         with pytest.raises(InvalidArgumentError, match="seed"):
             prepare_job(OmegaConf.create({"seed": bad}))
+
+
+def test_published_paths_do_not_depend_on_the_working_directory(tmp_path, monkeypatch):
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    import lfd_torch
+    from lfd_torch.store.paths import project_root
+
+    conf = Path(lfd_torch.__file__).resolve().parents[1] / "conf"
+    monkeypatch.delenv("LFD_ROOT", raising=False)
+    monkeypatch.chdir(tmp_path)
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose("lasa_tasks")
+    tables = Path(OmegaConf.to_container(cfg.paths, resolve=True)["tables"])
+    assert tables == conf.parent / "results" / "tables" and tables.is_absolute()
+    monkeypatch.setenv("LFD_ROOT", str(tmp_path / "elsewhere"))
+    assert project_root() == str((tmp_path / "elsewhere").resolve())
