@@ -171,3 +171,19 @@ def test_padding_is_canonical_whatever_the_caller_passes(generator):
     )
     for name in ("positions", "velocities", "times"):
         assert torch.equal(getattr(junk, name), getattr(demos, name)), name
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.int64])
+def test_demos_refuse_dtypes_other_than_float32_and_float64(dtype) -> None:
+    from lfd_torch.errors import ShapeMismatchError
+
+    x = torch.zeros(1, 5, 2).to(dtype)
+    with pytest.raises(ShapeMismatchError, match="float32 or float64"):
+        Demos(x, torch.zeros_like(x), torch.arange(5).to(dtype).unsqueeze(0), torch.tensor([5]), torch.zeros(2).to(dtype))
+
+
+def test_demos_refuse_zero_dimensional_states() -> None:
+    from lfd_torch.errors import ShapeMismatchError
+
+    with pytest.raises(ShapeMismatchError, match="d = 0"):
+        Demos.from_sequences([torch.zeros(5, 0, dtype=torch.float64)])

@@ -158,3 +158,19 @@ def test_pipeline_runs_on_lasa_and_is_pure():
     assert (out.end_points - demos.end_points).abs().max() < 1e-9
     with pytest.raises(UnknownNameError):
         Preprocess(smoothing="gaussian")
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"window": 5, "polyorder": -1}, {"window": 0}, {"window": -3}, {"window": 4}, {"window": 2.5},
+        {"subsample_step": 0}, {"subsample_step": -2}, {"n_samples": 2}, {"resample_mode": "fast"},
+        {"window": 5, "polyorder": 5}, {"screen_threshold": 1.5}, {"trim_position_tol": -1.0, "trim_velocity_tol": 1.0},
+    ],
+)
+def test_preprocess_checks_its_arguments_at_construction(kwargs) -> None:
+    from lfd_torch.errors import LfdError
+
+    with pytest.raises(LfdError) as info:
+        Preprocess(**kwargs)
+    assert any(k in str(info.value) for k in kwargs)

@@ -210,6 +210,13 @@ class Demos:
         B, T, d = P.shape
         if B == 0:
             raise TooFewSamplesError("a demonstration set needs at least one demonstration")
+        if d == 0:
+            raise ShapeMismatchError("positions have dimension d = 0; a demonstration needs at least one coordinate")
+        if P.dtype not in (torch.float32, torch.float64):
+            raise ShapeMismatchError(
+                f"positions have dtype {P.dtype}; demonstrations are float32 or float64 (convert with .to(), or pass "
+                "dtype= to Demos.from_sequences): half precision cannot hold the Cholesky factors downstream"
+            )
         if V.shape != P.shape:
             raise ShapeMismatchError(f"velocities {tuple(V.shape)} do not match positions {tuple(P.shape)}")
         if Tm.shape != (B, T):

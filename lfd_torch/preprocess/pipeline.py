@@ -18,6 +18,12 @@ from lfd_torch.preprocess.regularize import (
 __all__ = ["Preprocess"]
 
 
+def _int_at_least(value: object, low: int, name: str, *, odd: bool = False) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low or (odd and value % 2 == 0):
+        what = f"an {'odd ' if odd else ''}integer >= {low}"
+        raise InvalidArgumentError(f"{name} must be {what}, got {value!r}")
+
+
 @dataclass(frozen=True)
 class Preprocess:
     """Regularize demonstrations in a fixed order: resample -> smooth -> velocities -> trim -> screen -> subsample.
@@ -55,6 +61,23 @@ class Preprocess:
             raise UnknownNameError("velocity_scheme", self.velocity_scheme, ("central", "forward", "backward", "given"))
         if (self.trim_position_tol is None) != (self.trim_velocity_tol is None):
             raise InvalidArgumentError("set both trim_position_tol and trim_velocity_tol, or neither")
+        # argument ranges are checked here, at construction, not only when a step happens to run
+        _int_at_least(self.window, 1, "window", odd=True)
+        _int_at_least(self.polyorder, 0, "polyorder")
+        if self.smoothing == "savgol" and self.window > 1 and self.polyorder >= self.window:
+            raise InvalidArgumentError(f"polyorder ({self.polyorder}) must be smaller than window ({self.window})")
+        if self.n_samples is not None:
+            _int_at_least(self.n_samples, 3, "n_samples")
+        if self.resample_mode not in ("time", "arc_length"):
+            raise UnknownNameError("resample_mode", self.resample_mode, ("time", "arc_length"))
+        _int_at_least(self.subsample_step, 1, "subsample_step")
+        for name in ("trim_position_tol", "trim_velocity_tol"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0):
+                raise InvalidArgumentError(f"{name} must be a number >= 0 or None, got {v!r}")
+        v = self.screen_threshold
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < 1):
+            raise InvalidArgumentError(f"screen_threshold must be a number in [0, 1) or None, got {v!r}")
 
     def __call__(self, demos: Demos) -> Demos:
         changed = False
