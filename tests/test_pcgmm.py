@@ -317,3 +317,13 @@ def test_damm_and_pcgmm_accept_cuda_tensors() -> None:
         gmm = fit(x.cuda(), x_dot.cuda(), generator=g)
         assert gmm.device.type == "cuda"
         assert torch.isfinite(gmm.log_prob(x.cuda())).all()
+
+
+@pytest.mark.parametrize("name", ["PCGMMFitter", "DAMMFitter", "EMFitter", "EMBICFitter"])
+def test_fitters_require_a_generator(name) -> None:
+    import lfd_torch.gmm as gmm
+    from lfd_torch.errors import InvalidArgumentError
+
+    x = torch.randn(50, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    with pytest.raises(InvalidArgumentError, match="generator"):
+        getattr(gmm, name)()(x, x, generator=None)

@@ -27,6 +27,13 @@ def _hyperparameters(fitter: object) -> dict[str, object]:
     return {f.name: getattr(fitter, f.name) for f in fields(fitter)}  # type: ignore[arg-type]
 
 
+def _check_generator(generator: object, fitter: str) -> None:
+    if not isinstance(generator, torch.Generator):
+        raise InvalidArgumentError(
+            f"{fitter} needs generator=torch.Generator() (every stochastic step is seeded), got {type(generator).__name__}"
+        )
+
+
 @dataclass(frozen=True)
 class PCGMMFitter:
     """PC-GMM (:func:`~lfd_torch.gmm.pcgmm.fit_pcgmm`); the fields are its hyperparameters."""
@@ -46,6 +53,7 @@ class PCGMMFitter:
         """Fit to positions x (N, d) and velocities x_dot (N, d) (required)."""
         if x_dot is None:
             raise InvalidArgumentError("PC-GMM needs velocities x_dot")
+        _check_generator(generator, "PCGMMFitter")
         return fit_pcgmm(x, x_dot, generator=generator, **_hyperparameters(self))
 
 
@@ -67,6 +75,7 @@ class DAMMFitter:
         """Fit to positions x (N, d) and velocities x_dot (N, d) (required)."""
         if x_dot is None:
             raise InvalidArgumentError("DAMM needs velocities x_dot")
+        _check_generator(generator, "DAMMFitter")
         return fit_damm(x, x_dot, generator=generator, **_hyperparameters(self))
 
 
@@ -84,6 +93,7 @@ class EMFitter:
 
     def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
         """Fit to positions x (N, d); ``x_dot`` is ignored."""
+        _check_generator(generator, "EMFitter")
         return fit_em(x, generator=generator, **_hyperparameters(self))
 
 
@@ -104,4 +114,5 @@ class EMBICFitter:
 
     def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
         """Fit to positions x (N, d); ``x_dot`` is ignored."""
+        _check_generator(generator, "EMBICFitter")
         return fit_em_bic(x, generator=generator, **_hyperparameters(self))
