@@ -215,3 +215,16 @@ def test_saved_primitive_detects_a_flipped_bit_and_random_bytes(tmp_path) -> Non
         load_primitive(tmp_path / "random.pt")
     again = load_primitive(path)
     assert torch.equal(again.A, model.A)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_primitive_refuses_non_finite_positions(bad) -> None:
+    from lfd_torch.errors import NonFiniteError
+
+    demos = load_lasa("Angle")[[0]]
+    model = fit_lpvds(demos, gmm=PCGMMFitter(), generator=torch.Generator().manual_seed(0))
+    x = demos.positions[0, :5].clone()
+    x[2, 1] = bad
+    for call in (model, model.component_velocities, model.lyapunov_derivative):
+        with pytest.raises(NonFiniteError):
+            call(x)

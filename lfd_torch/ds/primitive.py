@@ -191,6 +191,8 @@ class StablePrimitive:
                 f"positions are {x.dtype} on {x.device}, the primitive is {self.dtype} on {self.device}; "
                 "convert one with .to(dtype=..., device=...)"
             )
+        if x.numel() and not bool(torch.isfinite(x).all()):
+            raise NonFiniteError("positions contain NaN or Inf")
 
     def component_velocities(self, x: Tensor) -> Tensor:
         """Velocity of every linear component, A_k (x - g).
