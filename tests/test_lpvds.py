@@ -385,3 +385,12 @@ def test_a_step_does_not_depend_on_what_was_solved_before() -> None:
     solve_lpv_matrices(*b, g, P)
     again, _ = solve_lpv_matrices(*a, g, P)
     assert torch.equal(first, again)
+
+
+def test_unknown_solver_option_is_a_typed_error_naming_it() -> None:
+    from lfd_torch.errors import InvalidArgumentError
+
+    demos = load_lasa("Angle")[[0]]
+    with pytest.raises(InvalidArgumentError, match="not_an_option"):
+        fit_lpvds(demos, gmm=PCGMMFitter(), generator=torch.Generator().manual_seed(0),
+                  solver_options={"CLARABEL": {"not_an_option": 3}})  # fmt: skip

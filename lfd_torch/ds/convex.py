@@ -14,7 +14,7 @@ from typing import Any
 
 import cvxpy as cp
 
-from lfd_torch.errors import SolverError
+from lfd_torch.errors import InvalidArgumentError, SolverError
 
 __all__ = ["DEFAULT_SOLVERS", "solve_problem", "normalize_solvers"]
 
@@ -60,6 +60,8 @@ def solve_problem(
                 # no warm start: a cached program would otherwise start from the previous fit's solution, and
                 # the result (to the solver's tolerance) would depend on what was solved before in the process
                 problem.solve(solver=name, **{"warm_start": False, **options.get(name, {})})
+        except TypeError as exc:  # an option the solver does not know: the caller's mistake, not a solver failure
+            raise InvalidArgumentError(f"solver_options[{name!r}] = {options.get(name, {})!r}: {exc}") from exc
         except (cp.error.SolverError, cp.error.DCPError, ValueError, ArithmeticError) as exc:
             attempts.append(f"{name}: {type(exc).__name__}: {exc}")
             continue
