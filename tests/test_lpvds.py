@@ -388,7 +388,9 @@ def test_a_step_does_not_depend_on_what_was_solved_before() -> None:
 
 
 def test_unknown_solver_option_is_a_typed_error_naming_it() -> None:
+    from lfd_torch.data import load_lasa
     from lfd_torch.errors import InvalidArgumentError
+    from lfd_torch.gmm import PCGMMFitter
 
     demos = load_lasa("Angle")[[0]]
     with pytest.raises(InvalidArgumentError, match="not_an_option"):
