@@ -28,7 +28,6 @@ import dataclasses
 import functools
 import json
 import os
-import pickle
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -347,8 +346,8 @@ class StablePrimitive:
         """Read a file written by :meth:`save` (``weights_only=True``); see :meth:`from_state_dict`."""
         try:
             state = torch.load(Path(path), map_location="cpu", weights_only=True)
-        except (OSError, RuntimeError, EOFError, ValueError, pickle.UnpicklingError) as exc:
-            raise StoreError(f"cannot read primitive file {path}: {exc}") from exc
+        except Exception as exc:  # noqa: BLE001 - a damaged file fails anywhere in torch's unpickler (IndexError, ...)
+            raise StoreError(f"cannot read primitive file {path}: {type(exc).__name__}: {exc}") from exc
         if not isinstance(state, Mapping):
             raise StoreError(f"{path} does not hold a primitive state dict")
         verify_digest(state, f"primitive file {path}")
