@@ -16,4 +16,4 @@ from lfd_torch.store.paths import register_resolvers as _register_resolvers
 
 _register_resolvers()  # ${lfd_root:} in the Hydra configs (conf/paths)
 
-__all__ = ["__version__", "data", "ds", "errors", "gmm", "metrics", "modulation", "preprocess", "rollout", "segmentation", "skills", "store", "utils", "viz"]
+__all__ = ["__version__", "data", "ds", "errors", "gmm", "metrics", "modulation", "preprocess", "robot", "rollout", "segmentation", "skills", "store", "utils", "viz"]

@@ -1,0 +1,227 @@
+"""Controllers of the Baxter arm (issue 10, item 2): task velocity -> joint velocity -> impedance set-point.
+
+* :class:`DLSVelocityMap` (100 Hz, the controller's own pytorch-kinematics model): damped least squares
+  ``qdot = J# v + (I - J# J) z`` with ``J# = J^T (J J^T + lambda^2 I)^-1``, a null-space posture / joint-limit
+  term ``z``, joint speed limits (uniform scaling, keeps the Cartesian direction) and position limits (joints
+  that would cross a limit within one period are saturated and the task is re-solved with the others).
+* :class:`ImpedanceController`: the joint-space PD law with gravity compensation,
+  ``tau = clamp(kp (q_d - q) + kv (qdot_d - qdot), +-tau_max) + g(q)``, in torch; the MuJoCo plant evaluates the
+  same law with its actuators at 1 kHz. :meth:`ImpedanceController.reference` turns the joint velocity into the
+  set-point ``(q_d, qdot_d)`` held over one control period.
+
+Shapes: q (B, 7) rad, v (B, 3) m/s (position task) or (B, 6) [m/s; rad/s] (pose task), qdot (B, 7) rad/s.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
+from lfd_torch.robot.arm import BaxterArm, check_joint_tensor
+from lfd_torch.robot.urdf import BAXTER_LEFT_TABLE
+
+__all__ = ["DLSVelocityMap", "ImpedanceController", "orientation_error"]
+
+
+def _positive(value: float, name: str, allow_zero: bool = True) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise InvalidArgumentError(f"{name} must be a finite number, got {value!r}")
+    if value < 0 or (value == 0 and not allow_zero):
+        raise InvalidArgumentError(f"{name} must be {'>=' if allow_zero else '>'} 0, got {value}")
+    return float(value)
+
+
+def _vec7(values, name: str, dtype=torch.float64) -> torch.Tensor:
+    t = torch.as_tensor(values, dtype=dtype).reshape(-1)
+    if t.numel() == 1:
+        t = t.expand(7).clone()
+    if t.shape != (7,):
+        raise ShapeMismatchError(f"{name} must have 7 entries (or 1), got {tuple(t.shape)}")
+    if not bool(torch.isfinite(t).all()) or bool((t < 0).any()):
+        raise InvalidArgumentError(f"{name} must be finite and >= 0, got {values!r}")
+    return t
+
+
+def orientation_error(rot: torch.Tensor, rot_des: torch.Tensor) -> torch.Tensor:
+    """(..., 3) rotation vector (rad, base frame) of ``rot_des rot^T``: the angular displacement from ``rot``
+    (..., 3, 3) to ``rot_des`` (..., 3, 3); ``w = k * orientation_error`` is a proportional orientation command."""
+    r = rot_des @ rot.transpose(-1, -2)
+    axis = torch.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1)
+    cos = ((r[..., 0, 0] + r[..., 1, 1] + r[..., 2, 2] - 1) / 2).clamp(-1.0, 1.0)
+    sin = axis.norm(dim=-1) / 2
+    angle = torch.atan2(sin, cos)
+    scale = torch.where(sin > 1e-8, angle / (2 * sin).clamp_min(1e-30), torch.full_like(angle, 0.5))
+    # near pi the axis from the skew part is ill-conditioned: take it from the symmetric part
+    near_pi = cos < -0.999
+    if bool(near_pi.any()):
+        sym = (r + r.transpose(-1, -2)) / 2 + torch.eye(3, dtype=r.dtype, device=r.device) * (-cos[..., None, None])
+        col = sym.norm(dim=-2).argmax(-1)
+        ax = torch.gather(sym, -1, col[..., None, None].expand(*col.shape, 3, 1)).squeeze(-1)
+        ax = ax / ax.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+        ax = torch.where((ax * axis).sum(-1, keepdim=True) < 0, -ax, ax)
+        return torch.where(near_pi[..., None], ax * angle[..., None], axis * scale[..., None])
+    return axis * scale[..., None]
+
+
+class DLSVelocityMap:
+    """Spoon-tip velocity -> joint velocity by damped least squares with null-space posture and joint limits.
+
+    Args:
+        arm: the kinematic model (pytorch-kinematics); a new :class:`BaxterArm` when None.
+        damping: lambda (m) of ``J^T (J J^T + lambda^2 I)^-1``.
+        null_gain: gain (1/s) of the posture term ``z = null_gain (posture - q)``.
+        posture: (7,) rest posture (rad); default the arm's neutral pose.
+        limit_margin: width (rad) of the zone inside each position limit where ``z`` also pushes away from it.
+        limit_gain: gain (1/s) of that push.
+        limit_buffer: distance (rad) kept from the hard limits by the position-limit saturation.
+        orientation_weight: length (m) that weighs the angular rows of a pose task (v of shape (B, 6)).
+        iterations: saturation passes (a joint saturated in a pass is fixed at its bound in the next).
+    """
+
+    def __init__(
+        self,
+        arm: BaxterArm | None = None,
+        damping: float = 0.02,
+        null_gain: float = 1.0,
+        posture=None,
+        limit_margin: float = 0.15,
+        limit_gain: float = 2.0,
+        limit_buffer: float = 0.01,
+        orientation_weight: float = 0.1,
+        iterations: int = 3,
+    ):
+        self.arm = BaxterArm() if arm is None else arm
+        if not isinstance(self.arm, BaxterArm):
+            raise InvalidArgumentError(f"arm must be a BaxterArm, got {type(arm).__name__}")
+        self.damping = _positive(damping, "damping")
+        self.null_gain = _positive(null_gain, "null_gain")
+        self.limit_margin = _positive(limit_margin, "limit_margin")
+        self.limit_gain = _positive(limit_gain, "limit_gain")
+        self.limit_buffer = _positive(limit_buffer, "limit_buffer")
+        self.orientation_weight = _positive(orientation_weight, "orientation_weight", allow_zero=False)
+        if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
+            raise InvalidArgumentError(f"iterations must be an int >= 1, got {iterations!r}")
+        self.iterations = iterations
+        p = self.arm.neutral() if posture is None else torch.as_tensor(posture, dtype=torch.float64)
+        self.posture = self.arm.check_limits(p.reshape(7), "posture")
+
+    def null_velocity(self, q: torch.Tensor) -> torch.Tensor:
+        """(B, 7) secondary joint velocity z (rad/s): posture attraction plus a push out of the limit margins."""
+        lo, hi = self.arm.lower(q.dtype, q.device), self.arm.upper(q.dtype, q.device)
+        m = self.limit_margin
+        push = torch.relu(lo + m - q) - torch.relu(q - (hi - m))
+        return self.null_gain * (self.posture.to(q) - q) + self.limit_gain * push
+
+    def __call__(self, q: torch.Tensor, v: torch.Tensor, dt: float = 0.01, jacobian: torch.Tensor | None = None) -> torch.Tensor:
+        """Joint velocity (B, 7) rad/s realising the task velocity ``v`` (B, 3) or (B, 6) at ``q`` (B, 7) rad.
+
+        ``dt`` (s) is the control period over which the position limits must hold: every returned qdot keeps
+        ``q + dt qdot`` within ``[lower + limit_buffer, upper - limit_buffer]`` (or moves towards it) and
+        ``|qdot| <= velocity_limits``. ``jacobian`` (B, 6, 7) may be passed when already computed at ``q``.
+
+        Raises:
+            ShapeMismatchError: ``q`` not (B, 7), ``v`` not (B, 3)/(B, 6) or batch sizes that differ.
+            InvalidArgumentError / NonFiniteError: bad dtype, NaN, ``dt <= 0``.
+        """
+        q = check_joint_tensor(q, "q")
+        if not isinstance(v, torch.Tensor) or v.dtype != q.dtype or v.device != q.device:
+            raise InvalidArgumentError("v must be a tensor of the same dtype and device as q")
+        if v.ndim != q.ndim or v.shape[:-1] != q.shape[:-1] or v.shape[-1] not in (3, 6):
+            raise ShapeMismatchError(f"v must have shape {tuple(q.shape[:-1])} + (3,) or (6,), got {tuple(v.shape)}")
+        if not bool(torch.isfinite(v).all()):
+            from lfd_torch.errors import NonFiniteError
+
+            raise NonFiniteError("v contains NaN or Inf")
+        dt = _positive(dt, "dt", allow_zero=False)
+        batch = q.shape[:-1]
+        q2, v2 = q.reshape(-1, 7), v.reshape(-1, v.shape[-1])
+        J = self.arm.jacobian(q2) if jacobian is None else jacobian.reshape(-1, 6, 7).to(q2)
+        if v2.shape[-1] == 3:
+            J = J[:, :3]
+        else:
+            w = self.orientation_weight
+            J = torch.cat([J[:, :3], w * J[:, 3:]], 1)
+            v2 = torch.cat([v2[:, :3], w * v2[:, 3:]], -1)
+        qdot = self._solve(q2, v2, J, dt)
+        return qdot.reshape(*batch, 7)
+
+    def _solve(self, q: torch.Tensor, v: torch.Tensor, J: torch.Tensor, dt: float) -> torch.Tensor:
+        m = J.shape[1]
+        eye_m = torch.eye(m, dtype=q.dtype, device=q.device)
+        eye7 = torch.eye(7, dtype=q.dtype, device=q.device)
+        lam2 = self.damping**2
+        vmax = self.arm.velocity_limits(q.dtype, q.device)
+        lo = self.arm.lower(q.dtype, q.device) + self.limit_buffer
+        hi = self.arm.upper(q.dtype, q.device) - self.limit_buffer
+        # bounds of qdot for one period: speed limits and position limits (towards the range when outside it)
+        qd_lo = torch.maximum(-vmax, (lo - q) / dt).clamp(max=vmax)
+        qd_hi = torch.minimum(vmax, (hi - q) / dt).clamp(min=-vmax)
+        qd_hi = torch.maximum(qd_hi, qd_lo)
+        z = self.null_velocity(q)
+
+        def dls(Jw: torch.Tensor, rhs: torch.Tensor, zw: torch.Tensor) -> torch.Tensor:
+            A = Jw @ Jw.transpose(1, 2) + lam2 * eye_m
+            pinv = Jw.transpose(1, 2) @ torch.linalg.solve(A, eye_m.expand_as(A))  # (B, 7, m)
+            return (pinv @ rhs[..., None]).squeeze(-1) + ((eye7 - pinv @ Jw) @ zw[..., None]).squeeze(-1)
+
+        qdot = dls(J, v, z)
+        # speed limits: scale the whole qdot (and the task) so that the direction is kept
+        scale = (vmax / qdot.abs().clamp_min(1e-12)).amin(-1, keepdim=True).clamp(max=1.0)
+        v, z, qdot = v * scale, z * scale, qdot * scale
+        free = torch.ones_like(q)
+        fixed = torch.zeros_like(q)
+        for _ in range(self.iterations):
+            out = (qdot < qd_lo) | (qdot > qd_hi)
+            if not bool(out.any()):
+                break
+            fixed = torch.where(out & (free > 0), qdot.clamp(qd_lo, qd_hi), fixed)
+            free = free * (~out).to(q.dtype)
+            Jw = J * free[:, None, :]
+            rhs = v - (J @ (fixed * (1 - free))[..., None]).squeeze(-1)
+            qdot = free * dls(Jw, rhs, z * free) + (1 - free) * fixed
+        return torch.minimum(torch.maximum(qdot, qd_lo), qd_hi)
+
+
+class ImpedanceController:
+    """Joint-space PD impedance with gravity compensation (the law the MuJoCo plant evaluates at 1 kHz).
+
+    Args:
+        stiffness: (7,) kp (N m/rad) or one value; damping: (7,) kv (N m s/rad) or one value.
+        effort_limits: (7,) |tau_PD| bound (N m); default the arm's effort limits.
+        max_lag: bound (rad) on ``q_d - q`` carried from one period to the next by :meth:`reference`
+            (0: the set-point restarts at the measured q every period; inf: a pure integrator).
+    """
+
+    def __init__(self, stiffness=None, damping=None, effort_limits=None, max_lag: float = 0.05):
+        from lfd_torch.robot.plant import DEFAULT_DAMPING, DEFAULT_STIFFNESS
+
+        self.stiffness = _vec7(DEFAULT_STIFFNESS if stiffness is None else stiffness, "stiffness")
+        self.damping = _vec7(DEFAULT_DAMPING if damping is None else damping, "damping")
+        if effort_limits is None:
+            effort_limits = [j.effort for j in BAXTER_LEFT_TABLE if j.kind == "revolute"]
+        self.effort_limits = _vec7(effort_limits, "effort_limits")
+        if isinstance(max_lag, bool) or not isinstance(max_lag, (int, float)) or not max_lag >= 0:
+            raise InvalidArgumentError(f"max_lag must be a number >= 0, got {max_lag!r}")
+        self.max_lag = float(max_lag)
+
+    def torque(self, q, qd, q_d, qd_d, gravity=None) -> torch.Tensor:
+        """(B, 7) joint torque (N m): ``clamp(kp (q_d - q) + kv (qd_d - qd)) + gravity`` for (B, 7) inputs."""
+        q = check_joint_tensor(q, "q")
+        qd, q_d, qd_d = (check_joint_tensor(x, n) for x, n in ((qd, "qd"), (q_d, "q_d"), (qd_d, "qd_d")))
+        kp, kv, tmax = (t.to(q) for t in (self.stiffness, self.damping, self.effort_limits))
+        tau = torch.maximum(torch.minimum(kp * (q_d - q) + kv * (qd_d - qd), tmax), -tmax)
+        return tau if gravity is None else tau + check_joint_tensor(gravity, "gravity")
+
+    def reference(self, q, qdot, q_d_prev=None, dt: float = 0.01) -> tuple[torch.Tensor, torch.Tensor]:
+        """Set-point for the next period: ``q_d = q + clamp(q_d_prev - q, +-max_lag) + dt qdot``, ``qd_d = qdot``.
+
+        ``q`` measured (B, 7) rad, ``qdot`` commanded (B, 7) rad/s, ``q_d_prev`` last set-point (B, 7) or None.
+        """
+        q = check_joint_tensor(q, "q")
+        qdot = check_joint_tensor(qdot, "qdot")
+        dt = _positive(dt, "dt", allow_zero=False)
+        lag = torch.zeros_like(q) if q_d_prev is None else (check_joint_tensor(q_d_prev, "q_d_prev") - q)
+        lag = lag.clamp(-self.max_lag, self.max_lag)
+        return q + lag + dt * qdot, qdot
