@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from conftest import requires_cuda
-from lfd_torch.errors import LfdError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.errors import InvalidArgumentError, LfdError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
 from lfd_torch.gmm import (
     GMM,
     DAMMFitter,
@@ -447,3 +447,59 @@ def test_gaussian_bank_matches_the_density_kernel() -> None:
         bank = GaussianBank(mean, cov)
         assert torch.allclose(bank.log_density(x), gaussian_log_density(x, mean, cov), rtol=1e-12, atol=1e-10)
         assert torch.allclose(bank.log_density(x.T.contiguous().T), bank.log_density(x))  # non-contiguous input
+
+
+# ------------------------------------------------------------------------------- effective-sample-size BIC
+def ar1(phi: float, T: int, generator: torch.Generator) -> torch.Tensor:
+    e = torch.randn(T, generator=generator, dtype=F64)
+    y = torch.zeros(T, dtype=F64)
+    for t in range(1, T):
+        y[t] = phi * y[t - 1] + e[t]
+    return y
+
+
+def test_autocorrelation_time_of_white_noise_and_ar1(generator: torch.Generator) -> None:
+    from lfd_torch.gmm.em import integrated_autocorrelation_time
+
+    white = torch.randn(4000, 3, generator=generator, dtype=F64)
+    assert (integrated_autocorrelation_time(white) - 1).abs().max() < 0.2
+    tau = float(integrated_autocorrelation_time(ar1(0.9, 20000, generator))[0])
+    assert tau == pytest.approx((1 + 0.9) / (1 - 0.9), rel=0.15)  # 19
+    assert float(integrated_autocorrelation_time(torch.ones(50, 1, dtype=F64))[0]) == 1.0
+
+
+def test_effective_sample_size_sums_sequences_and_is_conservative(generator: torch.Generator) -> None:
+    from lfd_torch.gmm.em import effective_sample_size, integrated_autocorrelation_time
+
+    a = torch.stack([ar1(0.9, 5000, generator), torch.randn(5000, generator=generator, dtype=F64)], -1)
+    b = torch.randn(3000, 2, generator=generator, dtype=F64)
+    n_a = effective_sample_size(a)
+    assert n_a == pytest.approx(5000 / float(integrated_autocorrelation_time(a).max()))  # the slowest column
+    assert n_a < 5000 / 10
+    groups = torch.cat([torch.zeros(5000, dtype=torch.long), torch.ones(3000, dtype=torch.long)])
+    assert effective_sample_size(torch.cat([a, b]), groups) == pytest.approx(n_a + effective_sample_size(b))
+    with pytest.raises(ShapeMismatchError):
+        effective_sample_size(a, groups)
+
+
+def test_effective_bic_formula_and_selection(generator: torch.Generator) -> None:
+    x, _ = blobs([[0, 0]], 100, 1.0, generator)
+    gmm = fit_em(x, 2, generator=generator)
+    assert bic(gmm, x, n_effective=100) == pytest.approx(bic(gmm, x))
+    ll = float(gmm.log_prob(x).sum())
+    assert bic(gmm, x, n_effective=10) == pytest.approx(-2 * 0.1 * ll + 11 * math.log(10))
+    with pytest.raises(InvalidArgumentError):
+        bic(gmm, x, n_effective=0)
+    with pytest.raises(InvalidArgumentError):
+        bic(gmm, x, n_effective=101)
+    # a smooth curve sampled densely: the plain BIC keeps adding components, the effective one does not
+    t = torch.linspace(0, 1, 400, dtype=F64)
+    curve = torch.stack([torch.cos(3 * t), torch.sin(5 * t)], -1)
+    curve = curve + 0.01 * torch.randn(400, 2, generator=generator, dtype=F64)
+    from lfd_torch.gmm.em import effective_sample_size
+
+    n_eff = effective_sample_size(curve)
+    assert n_eff < 40
+    plain = fit_em_bic(curve, k_range=range(1, 9), generator=torch.Generator().manual_seed(0))
+    eff = fit_em_bic(curve, k_range=range(1, 9), generator=torch.Generator().manual_seed(0), n_effective=n_eff)
+    assert eff.n_components < plain.n_components

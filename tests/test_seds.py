@@ -100,18 +100,82 @@ def test_fit_lasa_certified_and_improves(objective: str, generator: torch.Genera
     assert (model.lyapunov_derivative(x) < 0).all()
 
 
-def test_bic_selection_and_determinism() -> None:
+@pytest.mark.parametrize("rule", ["bic", "ess_bic"])
+def test_bic_selection_and_determinism(rule: str) -> None:
     demos = small_lasa("CShape", demos=(0, 1), stride=20)
-    a = fit_seds(demos, k_range=range(1, 5), max_iter=30, generator=torch.Generator().manual_seed(1))
-    b = SEDS.fit(demos, k_range=range(1, 5), max_iter=30, generator=torch.Generator().manual_seed(1))
-    assert 1 <= a.n_components <= 4
+    a = fit_seds(demos, k_selection=rule, k_range=range(1, 5), max_iter=30, generator=torch.Generator().manual_seed(1))
+    b = SEDS.fit(demos, k_selection=rule, k_range=range(1, 5), max_iter=30, generator=torch.Generator().manual_seed(1))
+    assert 1 <= a.n_components <= 4 and a.info["k_selection"] == rule
     assert torch.equal(a.A, b.A) and torch.equal(a.gmm.means, b.gmm.means)
+    if rule == "ess_bic":
+        assert 2 <= a.info["n_effective"] < a.info["n_samples"]
+    else:
+        assert a.info["n_effective"] is None
+
+
+def one_demo(shape: str):
+    """The paper's one-demonstration protocol: every 2nd sample, train on demo 0, test on demos 1-6."""
+    from lfd_torch.data import load_lasa
+    from lfd_torch.preprocess import subsample
+
+    demos = subsample(load_lasa(shape), 2, keep_last=False)
+    return demos[[0]], demos[[1, 2, 3, 4, 5, 6]]
+
+
+def test_default_k_is_the_k_lpvds_gets_from_pcgmm() -> None:
+    """One selection rule for SEDS and LPV-DS: with the same seed, SEDS runs LPV-DS's PC-GMM and gets its K."""
+    from lfd_torch.ds import fit_lpvds
+    from lfd_torch.gmm import PCGMMFitter
+
+    train, _ = one_demo("Sshape")
+    for seed in (0, 1):
+        seds = fit_seds(train, max_iter=5, generator=torch.Generator().manual_seed(seed))
+        lpv = fit_lpvds(train, gmm=PCGMMFitter(), generator=torch.Generator().manual_seed(seed))
+        assert seds.info["k_selection"] == "pcgmm" and seds.n_components == lpv.n_components
+    g = torch.Generator().manual_seed(0)
+    custom = fit_seds(train, pcgmm=PCGMMFitter(length_scale=1e3), max_iter=5, generator=g)
+    assert custom.n_components < lpv.n_components  # a long length scale ties the whole curve together
+
+
+def test_gain_prior_pulls_the_system_matrices_towards_the_data_time_scale() -> None:
+    """The prior N(-I, gain_prior^2) in scaled units is centred on A = -(u / s) I in data units."""
+    demos = small_lasa("JShape_2", demos=(0,), stride=4)
+    x, x_dot, _ = demos.samples()
+    rate = float(x_dot.pow(2).sum(-1).mean().sqrt() / (x - demos.attractor).pow(2).sum(-1).mean().sqrt())  # u / s
+    fits = {gp: fit_seds(demos, n_components=4, gain_prior=gp, max_iter=100, generator=torch.Generator().manual_seed(0))
+            for gp in (None, 0.3, 0.01)}  # fmt: skip
+    eye = torch.eye(2, dtype=torch.float64)
+    dist = {gp: float(torch.linalg.matrix_norm(m.A + rate * eye).max()) for gp, m in fits.items()}
+    assert dist[0.01] < dist[0.3] < dist[None]
+    assert fits[0.3].info["gain_prior"] == 0.3 and fits[None].info["gain_prior"] is None
+
+
+@pytest.mark.parametrize("shape", ["NShape", "Angle"])
+def test_one_demonstration_defaults_stay_near_the_demonstrated_speeds(shape: str) -> None:
+    """The former defaults (MSE, K by plain BIC = 10, floor 1e-4) predicted ~5,000 mm/s at these test states."""
+    train, test = one_demo(shape)
+    model = fit_seds(train, generator=torch.Generator().manual_seed(0))
+    assert model.info["objective"] == "likelihood" and not model.info["fallback"]
+    with torch.no_grad():
+        pred = model(test.positions)
+    demo_speed = float(test.velocities.norm(dim=-1)[test.mask].max())
+    assert float(pred.norm(dim=-1)[test.mask].max()) < 3 * demo_speed
+    from lfd_torch.metrics import velocity_error
+
+    assert float(velocity_error(pred, test.velocities, test.mask).mean()) < 0.5 * demo_speed
+    res = rollout(model, test.positions[:, 0], 0.01, 3000, attractor=model.attractor, position_tol=0.5,
+                  velocity_tol=float("inf"))  # fmt: skip
+    assert bool(res.converged.all())
 
 
 def test_typed_errors(generator: torch.Generator) -> None:
     demos = small_lasa("Angle", stride=20)
     with pytest.raises(UnknownNameError):
         fit_seds(demos, objective="cosine", generator=generator)
+    with pytest.raises(UnknownNameError):
+        fit_seds(demos, k_selection="aic", generator=generator)
+    with pytest.raises(ValueError):
+        fit_seds(demos, gain_prior=0.0, generator=generator)
     with pytest.raises(ValueError):
         fit_seds(demos, eps=-1.0, generator=generator)
     with pytest.raises(TooFewSamplesError):
@@ -134,12 +198,14 @@ def test_random_starts_converge(shape: str, seed: int) -> None:
 
 
 def test_likelihood_fit_that_leaves_the_representable_range_falls_back_instead_of_crashing() -> None:
-    """NShape, one demonstration, K = 9, likelihood objective: L-BFGS drives a covariance factor to where its
-    Cholesky fails; the fit must fall back to its initialisation (a certified model), not raise LinAlgError."""
+    """NShape, one demonstration, K = 9, likelihood objective, the former floor reg = 1e-4: L-BFGS drives a
+    covariance factor to where its Cholesky fails; the fit must fall back to the best point it evaluated (a
+    certified model), not raise LinAlgError."""
     from lfd_torch.data import load_lasa
     from lfd_torch.preprocess import subsample
 
     demos = subsample(load_lasa("NShape"), 2, keep_last=False)[[0]]
-    model = fit_seds(demos, objective="likelihood", n_components=9, generator=torch.Generator().manual_seed(0))
+    g = torch.Generator().manual_seed(0)
+    model = fit_seds(demos, objective="likelihood", n_components=9, reg=1e-4, generator=g)
     assert model.stability_certificate().certified
     assert torch.isfinite(model(demos.positions[0])).all()
