@@ -10,6 +10,10 @@ Figures show each demonstration coloured by step over the regions where p(x | A_
     python experiments/segment_lasa.py
     python experiments/segment_lasa.py seed=1 segmentation.n_iterations=80
     python experiments/segment_lasa.py -m seed=0,1,2
+    python experiments/segment_lasa.py +experiment=segment_lasa_publish    # the README's table and figures
+
+``publish=true`` writes into ``paths.tables`` / ``paths.figures``; it is refused in a multirun (every job would
+overwrite the published files).
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import torch
 
 torch.set_num_threads(1)  # the busy-waiting default pool is ~10x slower on a loaded 2-core box
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
@@ -51,7 +56,15 @@ def datasets(cfg: DictConfig) -> dict[str, Demos]:
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
-    """Segment every data set; returns the table and the paths written."""
+    """Segment every data set; returns the table and the paths written.
+
+    Raises:
+        ValueError: ``publish=true`` in a Hydra multirun.
+    """
+    multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    if cfg.get("publish") and multirun:
+        raise ValueError("publish=true in a multirun would let every job overwrite the published table and "
+                         "figures; run the published configuration alone (+experiment=segment_lasa_publish)")
     out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(cfg.get("out_dir", "."))
     manifest = run_manifest(cfg, seed=cfg.seed)
     segmenter = instantiate(cfg.segmentation)

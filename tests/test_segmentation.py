@@ -200,7 +200,12 @@ def test_sampler_with_data_blind_likelihood_fails_the_step_property(monkeypatch,
         return (torch.zeros_like(ll), torch.zeros_like(q)) if maha_out else torch.zeros_like(ll)
 
     monkeypatch.setattr(sampler_module, "field_log_likelihood", blind)
-    monkeypatch.setattr(segmentation_module, "field_log_likelihood", blind)
+    original_additive = segmentation_module.field_log_likelihood_additive
+
+    def blind_additive(*args, **kwargs):
+        return torch.zeros_like(original_additive(*args, **kwargs))
+
+    monkeypatch.setattr(segmentation_module, "field_log_likelihood_additive", blind_additive)
     seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed))
     ok, report = step_accuracy(seg, syn.switch_times, syn.demos.lengths)
     assert not ok, f"a sampler blind to the data passed the step property: {report}"
@@ -594,3 +599,19 @@ def test_segment_on_cuda():
     parts = seg.split(demos, end_at_attractor=True)
     assert parts[-1].positions.device.type == "cuda"
     torch.testing.assert_close(parts[-1].attractor, demos.attractor)
+
+
+def test_segment_lasa_refuses_publish_in_a_multirun(tmp_path):
+    """experiments/segment_lasa.py: publish=true in a Hydra multirun would let every job overwrite the published
+    table and figures, so the job fails before it segments anything (like experiments/lasa_benchmark.py)."""
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parents[1] / "experiments" / "segment_lasa.py"
+    proc = subprocess.run(
+        [sys.executable, str(script), "-m", "publish=true", f"hydra.sweep.dir={tmp_path / 'sweep'}"],
+        capture_output=True, text=True, timeout=300, cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode != 0
+    assert "publish=true in a multirun" in proc.stderr + proc.stdout
+    assert not (tmp_path / "results").exists()

@@ -215,3 +215,37 @@ def test_segmentation_package_creates_tensors_on_an_explicit_device():
             ):  # fmt: skip
                 missing.append(f"{path.name}:{node.lineno} torch.{node.func.attr}")
     assert not missing, missing
+
+
+@pytest.mark.parametrize("dof", [None, 4.0])
+def test_additive_field_likelihood_against_scipy_and_at_rest(generator, dof):
+    """field_log_likelihood_additive is the Student t / Gaussian density with scale Psi_k + sigma_u^2 (1/w - 1) I
+    (scipy reference); it equals the sampler's Psi_k / w form when Psi_k = sigma_u^2 I; and as w -> 0 the ratio
+    of two states' densities tends to 1 (a sample at rest carries no evidence), where the Psi_k / w form keeps
+    (|Psi_b| / |Psi_a|)^(1/2)."""
+    from lfd_torch.segmentation.field import field_log_likelihood, field_log_likelihood_additive
+
+    d, n, K, su = 3, 6, 2, 0.2
+    z = torch.cat([torch.randn(n, d, generator=generator, dtype=F64), torch.ones(n, 1, dtype=F64)], -1)
+    u = torch.randn(n, d, generator=generator, dtype=F64)
+    w = torch.rand(n, generator=generator, dtype=F64) * 0.9 + 0.05
+    b = torch.randn(K, d, d + 1, generator=generator, dtype=F64) * 0.3
+    a = torch.randn(K, d, d, generator=generator, dtype=F64) * 0.1
+    psi = a @ a.transpose(-1, -2) + 0.02 * torch.eye(d, dtype=F64)
+    got = field_log_likelihood_additive(z, u, w, b, psi, dof, direction_noise=su)
+    for t in range(n):
+        for k in range(K):
+            cov = (psi[k] + su**2 * (1 / w[t] - 1) * torch.eye(d, dtype=F64)).numpy()
+            mean = (b[k] @ z[t]).numpy()
+            ref = (stats.multivariate_normal(mean, cov).logpdf(u[t].numpy()) if dof is None
+                   else stats.multivariate_t(mean, cov, df=dof).logpdf(u[t].numpy()))  # fmt: skip
+            assert got[t, k].item() == pytest.approx(ref, rel=1e-9, abs=1e-9)
+    iso = (su**2 * torch.eye(d, dtype=F64)).expand(K, d, d)
+    torch.testing.assert_close(field_log_likelihood_additive(z, u, w, b, iso, dof, direction_noise=su),
+                               field_log_likelihood(z, u, w, b, iso, dof))  # fmt: skip
+    rest = torch.full((n,), 1e-7, dtype=F64)
+    add = field_log_likelihood_additive(z, u, rest, b, psi, dof, direction_noise=su)
+    assert (add[:, 0] - add[:, 1]).abs().max().item() < 1e-4
+    scaled = field_log_likelihood(z, u, rest, b, psi, dof)
+    half = 0.5 * (torch.logdet(psi[1]) - torch.logdet(psi[0]))
+    torch.testing.assert_close(scaled[:, 0] - scaled[:, 1], half.expand(n), atol=1e-4, rtol=0)

@@ -43,6 +43,17 @@ With s0 = sigma_v / sigma_u (sigma_v the velocity noise per axis, sigma_u = ``di
 Psi = sigma_u^2 I, Psi / w = sigma_u^2 I + sigma_v^2 / s^2 I: the tolerance of the field plus the propagated
 velocity noise (:func:`lfd_torch.segmentation.segment` estimates sigma_v from the data).
 
+The noise model behind it is additive: a measured direction is the field's direction, with the field's tolerance
+Psi_k, plus the propagated velocity noise, u_t ~ N(B_k z_t, Psi_k + c_t I) with c_t = sigma_v^2 / s_t^2 =
+sigma_u^2 (1 / w_t - 1) (:func:`field_log_likelihood_additive`). The sampler uses Psi_k / w_t =
+Psi_k + c_t Psi_k / sigma_u^2 instead, because it keeps the MNIW update conjugate (weighted statistics); the two
+agree when Psi_k = sigma_u^2 I, and at full speed (c_t -> 0) for any Psi_k. They differ where a sample carries no
+direction information (w_t -> 0): under Psi_k / w_t the ratio of the densities of two states tends to
+(|Psi_b| / |Psi_a|)^(1/2), so at a rest the state with the tighter field is preferred for no reason in the data,
+while under the additive model it tends to 1 (both densities become N(u; 0, c_t I)), as it should. The
+change-point posterior that places every switch at full rate (:mod:`.segmentation`, item 3) uses the additive
+model; it only moves a switch between the two states the sampler put on either side of it.
+
 Conjugate prior (Matrix-Normal-Inverse-Wishart; Minka 2000, "Bayesian linear regression"): with weighted statistics
 Szz = sum_t w_t z_t z_t^T, Suz = sum_t w_t u_t z_t^T, Suu = sum_t w_t u_t u_t^T and n = number of samples,
 
@@ -68,7 +79,8 @@ from lfd_torch.gmm import NIWPrior, inverse_wishart_log_density, sample_niw
 from lfd_torch.gmm.gaussian import LOG_2PI
 
 __all__ = ["FieldPrior", "FieldObservations", "field_observations", "field_prior", "field_statistics",
-           "field_posterior", "sample_field", "field_log_density", "field_log_likelihood"]
+           "field_posterior", "sample_field", "field_log_density", "field_log_likelihood",
+           "field_log_likelihood_additive"]
 
 
 
@@ -278,3 +290,34 @@ def field_log_likelihood(
         const = math.lgamma(0.5 * (nu + d)) - math.lgamma(0.5 * nu) - 0.5 * d * math.log(nu * math.pi)
         out = base + const - 0.5 * (nu + d) * torch.log1p(q / nu)
     return (out, q) if maha_out else out
+
+
+def field_log_likelihood_additive(
+    z: Tensor, u: Tensor, w: Tensor, b: Tensor, psi: Tensor, dof: float | None = None, *, direction_noise: float = 0.2
+) -> Tensor:
+    """log t_nu(u_t; B_k z_t, Psi_k + c_t I), c_t = sigma_u^2 (1 / w_t - 1): the additive noise model (docstring).
+
+    Args:
+        z: (..., n, p), u: (..., n, d), w: (..., n) reliabilities in (0, 1].
+        b: (..., K, d, p), psi: (..., K, d, d).
+        dof: nu of the Student t; None for the Gaussian.
+        direction_noise: sigma_u, the one that defined w (:func:`field_observations`).
+
+    Returns:
+        (..., n, K) log densities. Equal to :func:`field_log_likelihood` when Psi_k = sigma_u^2 I.
+    """
+    d = u.shape[-1]
+    pred = torch.einsum("...kij,...nj->...nki", b, z)  # (..., n, K, d)
+    r = u.unsqueeze(-2) - pred
+    c = direction_noise**2 * (1.0 / w.clamp(1e-8, 1.0) - 1.0)  # (..., n) propagated velocity noise
+    eye = torch.eye(d, dtype=u.dtype, device=u.device)
+    cov = psi.unsqueeze(-4) + c[..., None, None, None] * eye  # (..., n, K, d, d)
+    chol = torch.linalg.cholesky(cov)
+    y = torch.linalg.solve_triangular(chol, r.unsqueeze(-1), upper=False).squeeze(-1)
+    q = y.square().sum(-1)
+    half_logdet = torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
+    if dof is None:
+        return -half_logdet - 0.5 * d * LOG_2PI - 0.5 * q
+    nu = float(dof)
+    const = math.lgamma(0.5 * (nu + d)) - math.lgamma(0.5 * nu) - 0.5 * d * math.log(nu * math.pi)
+    return -half_logdet + const - 0.5 * (nu + d) * torch.log1p(q / nu)

@@ -119,8 +119,9 @@ def backward_sample(filtered: Tensor, transition: Tensor, lengths: Tensor, gener
     """Draw state sequences from p(s_{0:T-1} | x) given filtered probabilities (blocked Gibbs step).
 
     s_{T_i-1} ~ filtered_{T_i-1}; s_t ~ filtered_t(j) transition(j, s_{t+1}) for t < T_i - 1. With one uniform
-    u_t per step, every step is a map g_t: s_{t+1} -> s_t (inverse CDF); the maps are composed by a parallel
-    doubling scan, so the draw takes ceil(log2 T) gathers instead of T sequential steps.
+    u_t per step, every step is a map g_t: s_{t+1} -> s_t (inverse CDF) applied to the drawn s_{t+1} only: T small
+    (B, K) steps (a parallel doubling scan over the full maps needs the (B, T, K, K) tensor of all of them, which
+    for the sampler's phase-expanded states is several times slower).
 
     Args:
         filtered: (B, T, K) from :func:`forward_filter`.
@@ -139,15 +140,16 @@ def backward_sample(filtered: Tensor, transition: Tensor, lengths: Tensor, gener
     end = filtered[rows, last]
     cdf_end = end.cumsum(-1)
     s_end = (cdf_end <= (uniforms[:, T] * cdf_end[:, -1]).unsqueeze(-1)).sum(-1).clamp_max(K - 1)
-    # g[b, t, j] = inverse CDF of filtered_t(i) transition(i, j) over i at u_t
-    weights = filtered.unsqueeze(-1) * transition.unsqueeze(1)  # (B, T, K_i, K_j)
-    cdf = weights.cumsum(-2)
-    g = (cdf <= (uniforms[:, :T, None, None] * cdf[:, :, -1:, :])).sum(-2).clamp_max(K - 1)  # (B, T, K)
+    # s_t = g_t(s_{t+1}), g_t(j) = inverse CDF of filtered_t(i) transition(i, j) over i at u_t: only the column of
+    # the drawn s_{t+1} is needed, (B, K) per step instead of the (B, T, K, K) maps of a parallel scan
     terminal = torch.arange(T, device=filtered.device).unsqueeze(0) >= last.unsqueeze(1)  # (B, T)
-    g = torch.where(terminal.unsqueeze(-1), s_end[:, None, None].expand(B, T, K), g)
-    step = 1
-    while step < T:
-        composed = g[:, :-step].gather(2, g[:, step:])
-        g = torch.cat([composed, g[:, T - step :]], 1)
-        step *= 2
-    return g[:, :, 0]
+    out = torch.empty(B, T, dtype=torch.long, device=filtered.device)
+    nxt = s_end
+    for t in range(T - 1, -1, -1):
+        column = transition.gather(2, nxt.view(B, 1, 1).expand(B, K, 1)).squeeze(-1)  # transition(i, s_{t+1})
+        cdf = (filtered[:, t] * column).cumsum(-1)
+        cur = (cdf <= (uniforms[:, t] * cdf[:, -1]).unsqueeze(-1)).sum(-1).clamp_max(K - 1)
+        cur = torch.where(terminal[:, t], s_end, cur)
+        out[:, t] = cur
+        nxt = cur
+    return out
