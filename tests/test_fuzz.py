@@ -169,3 +169,24 @@ def test_single_byte_flips_in_saved_primitives_are_detected(library, tmp_path_fa
     # the unchanged model
     again = load_primitive(path)
     assert torch.equal(again.A, library.skills[0].primitive.A)
+
+
+@FUZZ
+@given(st.integers(0, 100_000), st.integers(1, 255))
+def test_single_byte_flips_in_saved_segmentations_are_detected(library, tmp_path_factory, where, delta) -> None:
+    """Every single-byte change of a saved segmentation gives StoreError, or loads the unchanged content."""
+    from lfd_torch.errors import StoreError
+    from lfd_torch.segmentation import Segmentation
+
+    root = tmp_path_factory.mktemp("seg")
+    path = library.segmentation.save(root / "s.pt")
+    raw = bytearray(path.read_bytes())
+    pos = where % len(raw)
+    raw[pos] = (raw[pos] + delta) % 256
+    path.write_bytes(bytes(raw))
+    try:
+        seg = Segmentation.load(path)
+    except (StoreError, LfdError):
+        return
+    assert torch.equal(seg.space_mean, library.segmentation.space_mean)
+    assert all(torch.equal(a, b) for a, b in zip(seg.labels, library.segmentation.labels))

@@ -328,20 +328,29 @@ class Segmentation:
             raise StoreError(f"segmentation state lacks {exc}") from exc
 
     def save(self, path: str | Path) -> Path:
-        """Write :meth:`state_dict` atomically with ``torch.save``."""
+        """Write :meth:`state_dict` atomically with ``torch.save``, with the SHA-256 of its content
+        (:func:`lfd_torch.store.checksum.payload_digest`) checked by :meth:`load`."""
         from lfd_torch.store import atomic_path
+        from lfd_torch.store.checksum import DIGEST_KEY, payload_digest
 
+        state = self.state_dict()
+        state[DIGEST_KEY] = payload_digest(state)
         with atomic_path(path) as tmp:
-            torch.save(self.state_dict(), tmp)
+            torch.save(state, tmp)
         return Path(path)
 
     @classmethod
     def load(cls, path: str | Path) -> Segmentation:
-        """Read a file written by :meth:`save`."""
+        """Read a file written by :meth:`save`; a damaged, altered or foreign file raises StoreError naming it."""
+        from lfd_torch.store.checksum import verify_digest
+
         try:
             state = torch.load(path, weights_only=True)
         except Exception as exc:  # missing, truncated or foreign file
             raise StoreError(f"cannot read a segmentation from {str(path)!r}: {exc}") from exc
+        if not isinstance(state, dict):
+            raise StoreError(f"{str(path)!r} does not hold a segmentation state dict")
+        verify_digest(state, f"segmentation file {str(path)!r}")
         return cls.from_state_dict(state)
 
     def table(self) -> list[dict[str, Any]]:
