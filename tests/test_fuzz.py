@@ -57,11 +57,29 @@ def _finite(out) -> None:
             assert bool(torch.isfinite(t).all()), "a result with NaN/Inf was returned silently"
 
 
+@st.composite
+def sequences(draw):
+    """(T, d) float sequences of plausible size with special values (NaN, Inf, huge) at random places."""
+    T, d = draw(st.integers(1, 8)), draw(st.integers(0, 3))
+    dtype = draw(st.sampled_from(DTYPES))
+    values = draw(st.lists(st.floats(-10, 10) | st.sampled_from(SPECIAL), min_size=T * d, max_size=T * d))
+    t = torch.tensor(values, dtype=torch.float64).reshape(T, d)
+    return t.to(dtype) if dtype.is_floating_point else torch.nan_to_num(t, nan=0.0, posinf=0.0, neginf=0.0).to(dtype)
+
+
 @FUZZ
 @given(tensors())
 def test_demos_from_malformed_sequences(x) -> None:
-    """Demos.from_sequences: typed error or a valid set whose positions are finite."""
+    """Demos.from_sequences on tensors of any rank: typed error or a valid set whose positions are finite."""
     _typed_or_ok(lambda: Demos.from_sequences([x]), lambda d: _finite(d.positions[d.mask]))
+
+
+@FUZZ
+@given(st.lists(sequences(), min_size=1, max_size=3))
+def test_demos_from_sequences_with_special_values(xs) -> None:
+    """Demos.from_sequences on (T, d) sequences: typed error or finite positions, velocities and times."""
+    _typed_or_ok(lambda: Demos.from_sequences(xs),
+                 lambda d: _finite((d.positions[d.mask], d.velocities[d.mask], d.times[d.mask])))  # fmt: skip
 
 
 @FUZZ
