@@ -33,6 +33,7 @@ test: $(STAMP)
 # glibc malloc otherwise returns and re-requests the field's temporaries every step (page-fault storm).
 bench: $(STAMP)
 	MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=1073741824 $(BIN)/python experiments/bench_core.py
+	MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=1073741824 $(BIN)/python experiments/bench_engine.py
 
 # Every published figure and table in results/ (each command's publish preset; see README).
 figures: $(STAMP)

@@ -3,6 +3,10 @@
     python experiments/bench_engine.py [--shape Multi_Models_3] [--training all] [--repeats 7] [--dtype float64]
                                        [--json results/tables/bench_engine.json]
 
+Run it as ``make bench`` does, with ``MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=1073741824``: without
+them glibc returns and re-requests the large temporaries of every batched tick (a page-fault storm that made the
+10,000-state tick 2-4x slower in our runs).
+
 On a library learned from LASA ``--shape`` (all seven demonstrations by default: 2 routes, ~16-18 steps):
 1. single-state tick through the py_trees tree (route, step completion, subtask test, primitive, entropy,
    modulation, rate floor and speed cap), mode ``full``: median over 2,000 ticks of states along the demonstrations,
