@@ -40,6 +40,9 @@ figures: $(STAMP)
 	$(BIN)/python experiments/segment_lasa.py +experiment=segment_lasa_publish
 	$(BIN)/python experiments/lasa_tasks.py +experiment=lasa_tasks_publish
 	$(BIN)/python experiments/lasa_benchmark.py +experiment=lasa_benchmark_publish
+	rm -rf multirun/lasa_benchmark_paper
+	$(BIN)/python experiments/lasa_benchmark.py +experiment=lasa_benchmark_paper hydra.sweep.dir=multirun/lasa_benchmark_paper progress=false
+	$(BIN)/python experiments/report_benchmark.py multirun/lasa_benchmark_paper --name lasa_benchmark_paper
 	test ! -f experiments/mnist.py || $(BIN)/python experiments/mnist.py publish=true
 
 clean:

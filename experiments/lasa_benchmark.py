@@ -129,7 +129,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                     for mod_name in cfg.modulations:
                         for split, (idx, _) in splits.items():
                             for i in idx:
-                                rows.append({"experiment": cfg.experiment, "shape": shape, "method": f"{key}+{mod_name}",
+                                rows.append({"experiment": cfg.experiment, "shape": shape,
+                                             "method": f"{key}+{mod_name}" + (f"@{cfg.tag}" if cfg.get("tag") else ""),
                                              "fold": fold, "seed": int(cfg.seed), "trajectory": int(i), "split": split,
                                              "status": f"{type(exc).__name__}: {exc}", **{m: math.nan for m in METRICS}})  # fmt: skip
                     continue
@@ -138,7 +139,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                     lib.save(out_dir / "libraries" / f"{shape}_fold{fold}_{key}")
                 for mod_name in cfg.modulations:
                     engine = SkillEngine(lib, Modulation(mode=str(mod_name), **mod_kw), arrival)
-                    method = f"{key}+{mod_name}"
+                    method = f"{key}+{mod_name}" + (f"@{cfg.tag}" if cfg.get("tag") else "")
                     for split, (idx, part) in splits.items():
                         values = evaluate(engine, part, float(cfg.dt), float(cfg.budget_s))
                         for b, i in enumerate(idx):

@@ -120,6 +120,12 @@ def test_killed_multirun_resumes_to_the_table_of_an_uninterrupted_run(tmp_path):
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     assert first.exists() and not (cut_dir / "2" / "results.parquet").exists()
+    from lfd_torch.store.sweep import main as collect_main, unfinished_jobs
+
+    if unfinished_jobs(cut_dir):  # the killed job's folder exists without rows: publishing it is refused
+        assert collect_main([str(cut_dir), "--out", str(tmp_path / "published.parquet")]) == 2
+        assert not (tmp_path / "published.parquet").exists()
+        assert collect_main([str(cut_dir), "--out", str(tmp_path / "forced.parquet"), "--force"]) == 0
     stamp = first.stat().st_mtime_ns
     out = subprocess.run(command(cut_dir), check=True, env=env, capture_output=True, text=True, timeout=600)
     assert first.stat().st_mtime_ns == stamp  # the finished job was skipped, not rewritten
@@ -155,3 +161,15 @@ def test_tiny_sweep_through_submitit_local(tmp_path):
     table = collect(sweep)
     assert sorted(set(table.fold)) == [0, 3] and len(table) == 14
     assert set(table[table.split == "train"].trajectory) == {0, 3}
+
+
+@pytest.mark.parametrize("preset", ["sweep_segmentation", "sweep_modulation"])
+def test_hyperparameter_sweep_presets_compose_and_tag_their_methods(preset):
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("lasa_benchmark", overrides=[f"+experiment={preset}"], return_hydra_config=True)
+    params = OmegaConf.to_container(cfg.hydra.sweeper.params)
+    assert cfg.hydra.mode.name == "MULTIRUN" and len(params) >= 3
+    tag = str(cfg.tag)
+    assert tag and "$" not in tag  # every swept setting is resolved into the method name, so collect keeps rows apart

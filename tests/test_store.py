@@ -520,3 +520,22 @@ def test_published_paths_do_not_depend_on_the_working_directory(tmp_path, monkey
     assert tables == conf.parent / "results" / "tables" and tables.is_absolute()
     monkeypatch.setenv("LFD_ROOT", str(tmp_path / "elsewhere"))
     assert project_root() == str((tmp_path / "elsewhere").resolve())
+
+
+def test_collect_refuses_to_publish_a_partial_sweep(tmp_path):
+    from lfd_torch.store import write_table
+    from lfd_torch.store.sweep import main as collect_main, unfinished_jobs
+
+    sweep = tmp_path / "sweep"
+    for job in ("0", "1"):
+        (sweep / job / ".hydra").mkdir(parents=True)
+        (sweep / job / ".hydra" / "config.yaml").write_text("seed: 0\n")
+    row = {"experiment": "e", "shape": "s", "method": "m", "fold": 0, "seed": 0, "trajectory": 0, "config_hash": "h",
+           "package_version": "v", "git_sha": "g", "x": 1.0}  # fmt: skip
+    write_table([row], sweep / "0" / "results.parquet")
+    assert unfinished_jobs(sweep) == [sweep / "1"]
+    assert collect_main([str(sweep), "--out", str(tmp_path / "t.parquet")]) == 2 and not (tmp_path / "t.parquet").exists()
+    assert collect_main([str(sweep), "--out", str(tmp_path / "t.parquet"), "--force"]) == 0
+    write_table([{**row, "trajectory": 1}], sweep / "1" / "results.parquet")
+    assert unfinished_jobs(sweep) == []
+    assert collect_main([str(sweep), "--out", str(tmp_path / "t2.parquet")]) == 0

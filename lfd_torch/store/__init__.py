@@ -30,7 +30,7 @@ from lfd_torch.store.manifest import (
     run_manifest,
 )
 from lfd_torch.store.job import JobContext, prepare_job
-from lfd_torch.store.sweep import PartialSweepWarning, collect, find_parts, finished_part
+from lfd_torch.store.sweep import PartialSweepWarning, collect, find_parts, finished_part, unfinished_jobs
 from lfd_torch.store.table import (
     KEY_COLUMNS,
     PROVENANCE_COLUMNS,
@@ -63,5 +63,6 @@ __all__ = [
     "collect",
     "find_parts",
     "finished_part",
+    "unfinished_jobs",
     "PartialSweepWarning",
 ]

@@ -42,7 +42,7 @@ from lfd_torch.store.table import (
     written_at_ns,
 )
 
-__all__ = ["collect", "find_parts", "finished_part", "PartialSweepWarning", "main"]
+__all__ = ["collect", "find_parts", "finished_part", "unfinished_jobs", "PartialSweepWarning", "main"]
 
 _SUFFIXES = (".parquet", ".csv")
 _ORDER_COLUMNS = ("__written_at_ns", "__part")
@@ -98,6 +98,15 @@ def _save(frame: pd.DataFrame, path: Path) -> None:
         atomic_write(path, lambda tmp: frame.to_csv(tmp, index=False))
     else:
         raise StoreError(f"cannot save to {path}: supported suffixes are {list(_SUFFIXES)}")
+
+
+def unfinished_jobs(root: str | os.PathLike[str], pattern: str = "**/*.parquet") -> list[Path]:
+    """Job folders of a Hydra sweep (folders holding ``.hydra/``) in which no results table was written yet: jobs
+    that were killed, failed, or are still running."""
+    base = Path(root)
+    jobs = sorted({p.parent.parent for p in base.glob("**/.hydra/config.yaml")})
+    done = {p.resolve() for p in find_parts(base, pattern)} if jobs else set()
+    return [j for j in jobs if not any(str(d).startswith(str(j.resolve()) + os.sep) for d in done)]
 
 
 def finished_part(path: str | os.PathLike[str], manifest: Mapping[str, Any]) -> pd.DataFrame | None:
@@ -200,9 +209,11 @@ def collect(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Command line: ``python -m lfd_torch.store.collect SWEEP_DIR [--pattern GLOB] [--out FILE ...]``.
+    """Command line: ``python -m lfd_torch.store.collect SWEEP_DIR [--pattern GLOB] [--out FILE ...] [--force]``.
 
-    Without ``--out`` the merged table is printed to stdout as CSV. Skipped parts are reported on stderr.
+    Without ``--out`` the merged table is printed to stdout as CSV. Skipped parts are reported on stderr. With
+    ``--out``, a sweep in which some job folder holds no results (killed, failed, still running) is refused unless
+    ``--force``: a partial sweep never overwrites a published table.
 
     Returns:
         The exit status (0 on success, 2 on a StoreError).
@@ -219,7 +230,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--out", action="append", default=None, help="output .parquet or .csv file (repeatable)"
     )
+    parser.add_argument("--force", action="store_true", help="write --out even if some jobs of the sweep have no rows")
     args = parser.parse_args(argv)
+    if args.out and not args.force and Path(args.path).is_dir():
+        missing = unfinished_jobs(args.path, args.pattern)
+        if missing:  # a partial sweep must not overwrite a published table
+            names = ", ".join(str(m) for m in missing[:5]) + (" ..." if len(missing) > 5 else "")
+            print(f"error: {len(missing)} job(s) of the sweep have no results ({names}); re-run the sweep with the "
+                  "same hydra.sweep.dir (finished jobs are skipped) or pass --force", file=sys.stderr)  # fmt: skip
+            return 2
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", PartialSweepWarning)

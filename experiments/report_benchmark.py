@@ -1,0 +1,46 @@
+"""Publish a finished lasa_benchmark sweep: merged table, summary (mean +- std per method, train and test) and
+Fig. 9 violins into the project's results/ (refused while a job of the sweep has no rows, unless --force).
+
+    python experiments/lasa_benchmark.py +experiment=lasa_benchmark_paper hydra.sweep.dir=multirun/lasa_benchmark_paper
+    python experiments/report_benchmark.py multirun/lasa_benchmark_paper --name lasa_benchmark_paper
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from lasa_benchmark import summary, write_summary, write_violins  # noqa: E402
+
+from lfd_torch.store import PartialSweepWarning, collect, unfinished_jobs  # noqa: E402
+from lfd_torch.store.paths import project_root  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("sweep", type=Path)
+    ap.add_argument("--name", default="lasa_benchmark_paper", help="stem of the published files")
+    ap.add_argument("--force", action="store_true", help="publish even if some jobs have no rows")
+    args = ap.parse_args(argv)
+    missing = unfinished_jobs(args.sweep)
+    if missing and not args.force:
+        print(f"error: {len(missing)} job(s) of {args.sweep} have no results; re-run the sweep or pass --force",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    results = Path(project_root()) / "results"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PartialSweepWarning)
+        table = collect(args.sweep, save_to=results / "tables" / f"{args.name}.parquet")
+    summ = summary(table)
+    written = write_summary(summ, results / "tables", f"{args.name}_summary")
+    written += write_violins(table, results / "figures" / f"{args.name}_violins.png")
+    print(f"{len(table)} rows, {table['shape'].nunique()} shapes -> " + ", ".join(str(p) for p in written))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
