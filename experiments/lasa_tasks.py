@@ -34,6 +34,7 @@ from typing import Any
 import hydra
 import pandas as pd
 import torch
+from tqdm import tqdm
 
 torch.set_num_threads(1)  # the busy-waiting default pool is ~10x slower on a loaded 2-core box
 from hydra.utils import instantiate
@@ -257,7 +258,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     rows: list[dict[str, Any]] = []
     written: list[Path] = []
     fig_dir = Path(cfg.paths.figures) if cfg.publish else out_dir / "figures"
-    for shape in cfg.shapes:
+    for shape in tqdm(list(cfg.shapes), desc="lasa_tasks", unit="shape", disable=not cfg.get("progress", True)):
         tasks = {}
         for training in cfg.training:
             part, task = run_task(cfg, str(shape), str(training), out_dir)

@@ -37,6 +37,7 @@ import hydra
 import numpy as np
 import pandas as pd
 import torch
+from tqdm import tqdm
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 torch.set_num_threads(1)  # the busy-waiting default pool is ~10x slower on a loaded 2-core box
@@ -284,7 +285,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     t_start = time.perf_counter()
     rows: list[dict[str, Any]] = []
     tasks: dict[int, dict] = {}
-    for d in cfg.digits:
+    for d in tqdm(list(cfg.digits), desc="mnist", unit="digit", disable=not cfg.get("progress", True)):
         part, task = run_digit(cfg, int(d))
         rows.extend(part)
         tasks[int(d)] = task

@@ -26,6 +26,7 @@ from typing import Any
 import hydra
 import pandas as pd
 import torch
+from tqdm import tqdm
 
 torch.set_num_threads(1)  # the busy-waiting default pool is ~10x slower on a loaded 2-core box
 from hydra.core.hydra_config import HydraConfig
@@ -72,7 +73,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     rows: list[dict[str, Any]] = []
     written: list[Path] = []
     segmentations = {}
-    for name, demos in datasets(cfg).items():
+    for name, demos in tqdm(list(datasets(cfg).items()), desc="segment_lasa", unit="set", disable=not cfg.get("progress", True)):
         g = torch.Generator().manual_seed(derive_seed(cfg.experiment, name, cfg.seed))
         t0 = time.perf_counter()
         seg = segmenter(demos, generator=g)
