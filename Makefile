@@ -35,7 +35,8 @@ bench: $(STAMP)
 	MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=1073741824 $(BIN)/python experiments/bench_core.py
 	MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=1073741824 $(BIN)/python experiments/bench_engine.py
 
-# Every published figure and table in results/ (each command's publish preset; see README).
+# Every published figure and table in results/ (each command's publish preset; see README). MNIST is read from
+# $LFD_MNIST_DIR (default: the development copy beside the checkout; the package itself never assumes a path).
 figures: $(STAMP)
 	$(BIN)/python experiments/segment_lasa.py +experiment=segment_lasa_publish
 	$(BIN)/python experiments/lasa_tasks.py +experiment=lasa_tasks_publish
@@ -43,7 +44,7 @@ figures: $(STAMP)
 	rm -rf multirun/lasa_benchmark_paper
 	$(BIN)/python experiments/lasa_benchmark.py +experiment=lasa_benchmark_paper hydra.sweep.dir=multirun/lasa_benchmark_paper progress=false
 	$(BIN)/python experiments/report_benchmark.py multirun/lasa_benchmark_paper --name lasa_benchmark_paper
-	test ! -f experiments/mnist.py || $(BIN)/python experiments/mnist.py publish=true
+	LFD_MNIST_DIR=$${LFD_MNIST_DIR:-../shared/data/mnist} $(BIN)/python experiments/mnist.py publish=true
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache

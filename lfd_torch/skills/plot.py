@@ -63,8 +63,9 @@ def plot_entropy(library: Any, demos: Any, path: str | Path, *, grid_size: int =
         g = skill.attractor.cpu()
         ax.plot(g[0], g[1], "r*", ms=9)
         ax.set_title(f"step {m + 1}", fontsize=9)
-        ax.set_xticks([])
-        ax.set_yticks([])
+        ax.set_xlabel("x (mm)", fontsize=8)
+        ax.set_ylabel("y (mm)", fontsize=8)
+        ax.tick_params(labelsize=7)
     for k in range(M, rows * cols):
         axes[k // cols][k % cols].axis("off")
     if title:
@@ -124,8 +125,9 @@ def plot_rollout_panels(
         ax.set_ylim(y0, y1)
         ax.set_title(name, fontsize=9)
         ax.set_aspect("equal", adjustable="box")
-        ax.set_xticks([])
-        ax.set_yticks([])
+        ax.set_xlabel("x (mm)", fontsize=8)
+        ax.set_ylabel("y (mm)", fontsize=8)
+        ax.tick_params(labelsize=7)
     if title:
         fig.suptitle(title, fontsize=10)
     out_path = save_figure(fig, path)
