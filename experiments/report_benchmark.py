@@ -12,6 +12,9 @@ import sys
 import warnings
 from pathlib import Path
 
+import torch  # noqa: E402
+
+torch.set_num_threads(1)  # the busy-waiting default pool is ~10x slower on a loaded 2-core box
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from lasa_benchmark import summary, write_summary, write_violins  # noqa: E402

@@ -19,11 +19,15 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-import pandas as pd
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # no torch here; keeps any BLAS user below single-threaded
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import pandas as pd  # noqa: E402
 
 __all__ = ["summarise", "count_no_worse", "markdown", "main"]
 
