@@ -13,7 +13,7 @@ export OMP_NUM_THREADS ?= 1
 export OMP_WAIT_POLICY ?= PASSIVE
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup run test bench figures clean
+.PHONY: setup run test bench figures results clean
 
 setup: $(STAMP)
 
@@ -35,9 +35,14 @@ bench: $(STAMP)
 	MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=1073741824 $(BIN)/python experiments/bench_core.py
 	MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=1073741824 $(BIN)/python experiments/bench_engine.py
 
-# Every published figure and table in results/ (each command's publish preset; see README). MNIST is read from
-# $LFD_MNIST_DIR (default: the development copy beside the checkout; the package itself never assumes a path).
+# Every published figure and summary table, redrawn from the stored tables and libraries in results/ (no fitting).
 figures: $(STAMP)
+	$(BIN)/python experiments/figures.py
+
+# Recompute everything results/ holds: each command's publish preset writes its tables, the libraries the figures
+# are drawn from (results/libraries) and its figures; then `figures` redraws them all from what was stored. MNIST is
+# read from $$LFD_MNIST_DIR (default: the development copy beside the checkout; the package never assumes a path).
+results: $(STAMP)
 	$(BIN)/python experiments/segment_lasa.py +experiment=segment_lasa_publish
 	$(BIN)/python experiments/lasa_tasks.py +experiment=lasa_tasks_publish
 	$(BIN)/python experiments/lasa_benchmark.py +experiment=lasa_benchmark_publish
@@ -45,6 +50,7 @@ figures: $(STAMP)
 	$(BIN)/python experiments/lasa_benchmark.py +experiment=lasa_benchmark_paper hydra.sweep.dir=multirun/lasa_benchmark_paper progress=false
 	$(BIN)/python experiments/report_benchmark.py multirun/lasa_benchmark_paper --name lasa_benchmark_paper
 	LFD_MNIST_DIR=$${LFD_MNIST_DIR:-../shared/data/mnist} $(BIN)/python experiments/mnist.py publish=true
+	$(BIN)/python experiments/figures.py
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache

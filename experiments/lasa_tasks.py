@@ -16,7 +16,10 @@ DTWD and E3 to the nearest demonstration (both paths resampled to ``n_resample``
 pairs points at equal path fractions), and for ``outside`` starts the samples and path length until the robot is
 back inside its active subtask space. Figures (paper Figs 5-8) and the behaviour tree (Fig. 3) go to the job
 folder, and with ``publish=true`` (preset ``+experiment=lasa_tasks_publish``) to ``paths.figures``; a summary table
-of the comparisons goes beside the results.
+of the comparisons goes beside the results. Publishing also stores what the figures are drawn from under
+``paths.libraries``/lasa_tasks/: the libraries (per shape and training, and the 1-, 2-, 3-step libraries of Fig. 6),
+the demonstrations and the run's configuration; ``experiments/figures.py`` redraws the figures from them with
+:func:`replay` (the same starts, pushes and rollouts, recomputed from the stored libraries without fitting).
 
     python experiments/lasa_tasks.py
     python experiments/lasa_tasks.py shapes=[Multi_Models_3] n_random=200
@@ -49,6 +52,7 @@ from lfd_torch.skills import SkillEngine, SkillLibrary, random_pushes
 from lfd_torch.skills.plot import plot_entropy, plot_rollout_panels
 from lfd_torch.store import atomic_write, prepare_job, write_table
 from lfd_torch.utils import derive_seed
+from lfd_torch.viz.stored import load_demos, save_config, save_demos
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +134,33 @@ def learn(cfg: DictConfig, demos: Demos, segmenter: Any, seed_parts: tuple) -> t
     return lib, time.perf_counter() - t0
 
 
+def engines_of(cfg: DictConfig, lib: SkillLibrary) -> dict[str, SkillEngine]:
+    """One engine per mode of ``cfg.modes`` over ``lib``, with the run's modulation and arrival settings."""
+    arrival = instantiate(cfg.skills).arrival
+    mod_kw = {k: v for k, v in OmegaConf.to_container(cfg.modulation, resolve=True).items() if k not in ("_target_", "mode")}
+    return {mode: SkillEngine(lib, Modulation(mode=mode, **mod_kw), arrival) for mode in cfg.modes}
+
+
+def task_starts(cfg: DictConfig, shape: str, training: str, engines: dict[str, SkillEngine],
+                demos_all: Demos) -> dict[str, torch.Tensor]:
+    """The seeded start states of one task (:func:`starts` from the task's own generator)."""
+    gen = torch.Generator().manual_seed(derive_seed(cfg.experiment, shape, training, "starts", cfg.seed))
+    return starts(engines["full"], demos_all, cfg, gen)
+
+
+def roll(cfg: DictConfig, shape: str, training: str, kind: str, engine: SkillEngine, x0: torch.Tensor) -> Any:
+    """The engine's rollout from ``x0``; ``random`` starts get the task's seeded random pushes (their directions
+    are drawn during the run, so a push plan reproduces only for the same batch of starts)."""
+    lib = engine.library
+    pushes = None
+    if kind == "random":
+        pushes = random_pushes(x0.shape[0], generator=torch.Generator().manual_seed(
+            derive_seed(cfg.experiment, shape, training, "pushes", cfg.seed)), n_pushes=int(cfg.pushes.n),
+            window=(int(cfg.pushes.first_s / cfg.dt), int(cfg.pushes.last_s / cfg.dt)),
+            magnitude=(cfg.pushes.low * lib.span, cfg.pushes.high * lib.span))  # fmt: skip
+    return engine.rollout(x0, dt=cfg.dt, n_steps=int(round(cfg.budget_s / cfg.dt)), pushes=pushes)
+
+
 def run_task(cfg: DictConfig, shape: str, training: str, out_dir: Path) -> tuple[list[dict[str, Any]], dict]:
     demos_all = load_lasa(shape)
     train = demos_all[[int(cfg.train_demo)]] if training == "one" else demos_all
@@ -137,12 +168,8 @@ def run_task(cfg: DictConfig, shape: str, training: str, out_dir: Path) -> tuple
     lib.save(out_dir / "libraries" / f"{shape}_{training}")
     log.info("%s/%s: %d steps, %d routes, learned in %.1f s, stability %s", shape, training, lib.n_steps,
              len(lib.routes), fit_s, lib.stability and lib.stability["passed"])  # fmt: skip
-    arrival = instantiate(cfg.skills).arrival
-    mod_kw = {k: v for k, v in OmegaConf.to_container(cfg.modulation, resolve=True).items() if k not in ("_target_", "mode")}
-    engines = {mode: SkillEngine(lib, Modulation(mode=mode, **mod_kw), arrival) for mode in cfg.modes}
-    gen = torch.Generator().manual_seed(derive_seed(cfg.experiment, shape, training, "starts", cfg.seed))
-    kinds = starts(engines["full"], demos_all, cfg, gen)
-    n_steps = int(round(cfg.budget_s / cfg.dt))
+    engines = engines_of(cfg, lib)
+    kinds = task_starts(cfg, shape, training, engines, demos_all)
     rows: list[dict[str, Any]] = []
     outs: dict[tuple[str, str], Any] = {}
     for kind, x0 in kinds.items():
@@ -150,14 +177,8 @@ def run_task(cfg: DictConfig, shape: str, training: str, out_dir: Path) -> tuple
             log.warning("%s/%s: no %s starts found", shape, training, kind)
             continue
         for mode, eng in engines.items():
-            pushes = None
-            if kind == "random":
-                pushes = random_pushes(x0.shape[0], generator=torch.Generator().manual_seed(
-                    derive_seed(cfg.experiment, shape, training, "pushes", cfg.seed)), n_pushes=int(cfg.pushes.n),
-                    window=(int(cfg.pushes.first_s / cfg.dt), int(cfg.pushes.last_s / cfg.dt)),
-                    magnitude=(cfg.pushes.low * lib.span, cfg.pushes.high * lib.span))  # fmt: skip
             t0 = time.perf_counter()
-            out = eng.rollout(x0, dt=cfg.dt, n_steps=n_steps, pushes=pushes)
+            out = roll(cfg, shape, training, kind, eng, x0)
             seconds = time.perf_counter() - t0
             outs[(kind, mode)] = out
             res = out.result
@@ -188,8 +209,43 @@ def run_task(cfg: DictConfig, shape: str, training: str, out_dir: Path) -> tuple
 
 
 # ---------------------------------------------------------------------------------------------- figures
-def figures(cfg: DictConfig, shape: str, tasks: dict[str, dict], fig_dir: Path) -> list[Path]:
-    """Paper Figs 3, 5-8 for one shape (module docstring)."""
+#: Rollouts drawn per panel: Fig. 7 (modulation, outside / inside starts) and Fig. 8 (pushes).
+MODULATION_ROWS = 5
+PUSH_ROWS = 12
+FIG6_STEPS = (1, 2, 3)
+
+
+def fig6_libraries(cfg: DictConfig, shape: str, train: Demos) -> dict[int, SkillLibrary]:
+    """Fig. 6: the training data with 1, 2, 3 equal-time steps, one library each (fitted, not checked)."""
+    libs = {}
+    for k in FIG6_STEPS:
+        seg = NoSegmenter() if k == 1 else FixedSegmenter([j / k for j in range(1, k)])
+        g = torch.Generator().manual_seed(derive_seed(cfg.experiment, shape, "fig6", k, cfg.seed))
+        libs[k] = SkillLibrary.learn(train, seg(train), primitive=instantiate(cfg.ds), generator=g, check=False)
+    return libs
+
+
+def fig6_panels(cfg: DictConfig, libs: dict[int, SkillLibrary], demos: Demos) -> list[tuple[str, SkillLibrary, Any]]:
+    """Fig. 6 panels: each library's engine (mode none) from the demonstrations' starts."""
+    panels = []
+    arrival = instantiate(cfg.skills).arrival
+    for k, lib_k in sorted(libs.items()):
+        out = SkillEngine(lib_k, "none", arrival).rollout(demos.start_points, dt=cfg.dt,
+                                                          n_steps=int(round(cfg.budget_s / cfg.dt)))  # fmt: skip
+        panels.append((f"{k} step{'s' if k > 1 else ''} (equal time)", lib_k, out))
+    return panels
+
+
+def figures(cfg: DictConfig, shape: str, tasks: dict[str, dict], fig6: list, fig_dir: Path) -> list[Path]:
+    """Paper Figs 3, 5-8 for one shape (module docstring), from the tasks' libraries and rollouts.
+
+    Args:
+        tasks: per training, ``library``, ``demos`` (all seven), ``engines`` (per mode) and ``outs`` (per (start
+            kind, mode) the :class:`~lfd_torch.skills.engine.EngineRollout`; the figures draw the ``demo`` /
+            ``none`` rollouts, the first :data:`MODULATION_ROWS` of ``outside`` / ``inside`` and the first
+            :data:`PUSH_ROWS` of ``random``).
+        fig6: :func:`fig6_panels` of the first training's Fig. 6 libraries.
+    """
     written = []
     one, everything = tasks.get("one"), tasks.get("all")
     base = one or everything
@@ -198,20 +254,10 @@ def figures(cfg: DictConfig, shape: str, tasks: dict[str, dict], fig_dir: Path) 
     written.append(plot_entropy(lib, demos, fig_dir / f"lasa_tasks_{shape}_entropy.png",
                                 title=f"{shape}: H2 of each step's primitive (white: H2 = H2(x_r))"))  # fmt: skip
     # Fig. 6: the same training data with 1, 2, 3 equal steps and with the BP-GM-HMM steps, engine mode none
-    train = base["train"]
-    panels = []
-    x0 = demos.start_points
-    for k in (1, 2, 3):
-        seg = NoSegmenter() if k == 1 else FixedSegmenter([j / k for j in range(1, k)])
-        g = torch.Generator().manual_seed(derive_seed(cfg.experiment, shape, "fig6", k, cfg.seed))
-        lib_k = SkillLibrary.learn(train, seg(train), primitive=instantiate(cfg.ds), generator=g, check=False)
-        out = SkillEngine(lib_k, "none", instantiate(cfg.skills).arrival).rollout(
-            x0, dt=cfg.dt, n_steps=int(round(cfg.budget_s / cfg.dt)))
-        panels.append((f"{k} step{'s' if k > 1 else ''} (equal time)", lib_k, out))
-    panels.append((f"BP-GM-HMM: {lib.n_steps} steps", lib, base["outs"][("demo", "none")]))
+    panels = list(fig6) + [(f"BP-GM-HMM: {lib.n_steps} steps", lib, base["outs"][("demo", "none")])]
     written.append(plot_rollout_panels(panels, demos, fig_dir / f"lasa_tasks_{shape}_steps.png",
                                        title=f"{shape}: LPV-DS with 1, 2, 3 and the model's steps"))  # fmt: skip
-    # Fig. 7: before/after modulation from starts outside and inside a subtask space (5 each)
+    # Fig. 7: before/after modulation from starts outside and inside a subtask space
     outs = base["outs"]
     panels = []
     for kind in ("outside", "inside"):
@@ -219,17 +265,64 @@ def figures(cfg: DictConfig, shape: str, tasks: dict[str, dict], fig_dir: Path) 
             if (kind, mode) in outs:
                 panels.append((f"{kind} A_m, {mode}", lib, outs[(kind, mode)]))
     if panels:
-        written.append(plot_rollout_panels(panels, demos, fig_dir / f"lasa_tasks_{shape}_modulation.png", max_rows=5,
+        written.append(plot_rollout_panels(panels, demos, fig_dir / f"lasa_tasks_{shape}_modulation.png",
+                                           max_rows=MODULATION_ROWS,
                                            title=f"{shape}: before / after modulation (red: large, green: small)"))  # fmt: skip
     # Fig. 8: complete tasks under random pushes (crosses)
     panels = [(f"{t}: pushes, {mode}", tk["library"], tk["outs"][("random", mode)])
               for t, tk in tasks.items() for mode in ("none", "full") if ("random", mode) in tk["outs"]]  # fmt: skip
-    written.append(plot_rollout_panels(panels, demos, fig_dir / f"lasa_tasks_{shape}_pushes.png", max_rows=12,
+    written.append(plot_rollout_panels(panels, demos, fig_dir / f"lasa_tasks_{shape}_pushes.png", max_rows=PUSH_ROWS,
                                        title=f"{shape}: whole task under random pushes"))  # fmt: skip
     # Fig. 3: the behaviour tree built from the segmentation of all demonstrations
     tree_lib = (everything or base)["engines"]["full"]
     written.extend(tree_lib.tree.render(fig_dir / f"lasa_tasks_{shape}_tree"))
     return written
+
+
+def store(cfg: DictConfig, shape: str, tasks: dict[str, dict], fig6_libs: dict[int, SkillLibrary],
+          libraries: Path) -> list[Path]:
+    """Store what :func:`replay` needs under ``libraries/lasa_tasks/``: per training ``<shape>_<training>/``,
+    the Fig. 6 libraries ``<shape>_steps<k>/``, ``<shape>_demos.pt`` and ``config.json``."""
+    where = libraries / cfg.experiment
+    written = [save_config(cfg, where / "config.json")]
+    for training, task in tasks.items():
+        written.append(task["library"].save(where / f"{shape}_{training}"))
+    for k, lib_k in fig6_libs.items():
+        written.append(lib_k.save(where / f"{shape}_steps{k}"))
+    first = next(iter(tasks.values()))
+    written.append(save_demos(first["demos"], where / f"{shape}_demos.pt", velocities=False))
+    return written
+
+
+def replay(cfg: DictConfig, shape: str, libraries: Path) -> tuple[dict[str, dict], list]:
+    """The ``tasks`` and ``fig6`` arguments of :func:`figures` from the stored libraries of one shape (no fitting):
+    the same seeded starts and pushes; only the rollouts the figures draw are recomputed (``random`` in full, its
+    push plan depends on the batch).
+
+    Raises:
+        StoreError: a stored library, demonstration or configuration file is missing or damaged (named).
+    """
+    where = libraries / cfg.experiment
+    demos_all, _ = load_demos(where / f"{shape}_demos.pt")
+    tasks: dict[str, dict] = {}
+    trainings = [str(t) for t in cfg.training]
+    base = "one" if "one" in trainings else trainings[0]  # the training whose Figs 5-7 are drawn
+    for training in trainings:
+        lib = SkillLibrary.load(where / f"{shape}_{training}")
+        engines = engines_of(cfg, lib)
+        kinds = task_starts(cfg, shape, training, engines, demos_all)
+        outs = {}
+        for kind, x0 in kinds.items():
+            if x0.shape[0] == 0 or (training != base and kind != "random"):
+                continue
+            rows = {"demo": x0.shape[0], "random": x0.shape[0]}.get(kind, MODULATION_ROWS)
+            for mode, eng in engines.items():
+                if kind == "demo" and mode != "none":
+                    continue
+                outs[(kind, mode)] = roll(cfg, shape, training, kind, eng, x0[:rows])
+        tasks[training] = {"library": lib, "demos": demos_all, "engines": engines, "outs": outs}
+    fig6_libs = {k: SkillLibrary.load(where / f"{shape}_steps{k}") for k in FIG6_STEPS}
+    return tasks, fig6_panels(cfg, fig6_libs, demos_all)
 
 
 def summary(table: pd.DataFrame) -> pd.DataFrame:
@@ -264,8 +357,14 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             part, task = run_task(cfg, str(shape), str(training), out_dir)
             rows.extend(part)
             tasks[str(training)] = task
-        if cfg.figures:
-            written.extend(figures(cfg, str(shape), tasks, fig_dir))
+        if cfg.figures or cfg.publish:
+            base = tasks.get("one") or tasks.get("all")
+            assert base is not None
+            fig6_libs = fig6_libraries(cfg, str(shape), base["train"])
+            if cfg.figures:
+                written.extend(figures(cfg, str(shape), tasks, fig6_panels(cfg, fig6_libs, base["demos"]), fig_dir))
+            if cfg.publish:
+                written.extend(store(cfg, str(shape), tasks, fig6_libs, Path(cfg.paths.libraries)))
     table = pd.DataFrame(rows)
     written.append(write_table(table, out_dir / "results.parquet", manifest=manifest))
     summ = summary(table)

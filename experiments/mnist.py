@@ -17,7 +17,9 @@ One row per (digit, method, start): DTWD and E3 to the nearest demonstration (bo
 final error (mm), reached (the rollout stopped at the goal), time (s), path length (mm), fit time. Figures in the
 job folder (``publish=true``: ``paths.figures``): ``mnist_strokes.png`` (Fig. 10: one image per digit with its
 pen path, and the demonstrations in mm) and ``mnist_rollouts.png`` (Fig. 11: framework and SEDS rollouts per
-digit). ``summary.md``: per digit and method, the means over starts.
+digit). ``summary.md``: per digit and method, the means over starts. Publishing also stores what the figures draw
+(per digit: the demonstrations, the first image and its pen path, the rollout paths of both methods) in
+``paths.libraries``/mnist/digit_<d>.pt, from which ``experiments/figures.py`` redraws them.
 
     LFD_MNIST_DIR=/path/to/mnist python experiments/mnist.py
     python experiments/mnist.py data.directory=/path/to/mnist digits=[4,9] data.n_demos=5
@@ -51,6 +53,7 @@ from lfd_torch.rollout import rollout  # noqa: E402
 from lfd_torch.skills import SkillEngine, SkillLibrary  # noqa: E402
 from lfd_torch.store import atomic_write, prepare_job, write_table  # noqa: E402
 from lfd_torch.utils import derive_seed  # noqa: E402
+from lfd_torch.viz.stored import load_demos, save_demos  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -209,24 +212,54 @@ def _demo_panel(ax: Any, demos: Demos, colour: str | None = None) -> None:
     ax.tick_params(labelsize=6)
 
 
-def figure_strokes(tasks: dict[int, dict], images: torch.Tensor, stroke_kw: dict, path: Path) -> Path:
+def figure_data(tasks: dict[int, dict], images: torch.Tensor, stroke_kw: dict) -> dict[int, dict]:
+    """What the two figures draw, per digit: ``demos``, ``index`` and ``image`` (H, W) uint8 of the first
+    demonstration's image, its pen path ``stroke`` (P, 2) in pixels, the start ``kinds`` and the rollout
+    ``paths`` per method (float32 (T_b, 2) each, mm)."""
+    data = {}
+    for d, task in tasks.items():
+        demos = task["demos"]
+        index = int(demos.names[0].rsplit("/", 1)[-1])
+        st = extract_stroke(images[index], **stroke_kw)
+        data[d] = {"demos": demos, "index": index, "image": images[index].clone(),
+                   "stroke": torch.tensor(np.array(st.path), dtype=torch.float64), "kinds": list(task["kinds"]),
+                   "paths": {m: [p.to(torch.float32) for p in ps] for m, ps in task["paths"].items()}}  # fmt: skip
+    return data
+
+
+def store(data: dict[int, dict], libraries: Path) -> list[Path]:
+    """``libraries/mnist/digit_<d>.pt`` per digit of :func:`figure_data`."""
+    return [save_demos(item["demos"], libraries / "mnist" / f"digit_{d}.pt",
+                       **{k: v for k, v in item.items() if k != "demos"}) for d, item in data.items()]  # fmt: skip
+
+
+def load_figure_data(libraries: Path, digits: list[int]) -> dict[int, dict]:
+    """:func:`figure_data` from the files of :func:`store` (StoreError naming a missing or damaged one)."""
+    data = {}
+    for d in digits:
+        demos, item = load_demos(libraries / "mnist" / f"digit_{d}.pt")
+        data[d] = {"demos": demos, **item}
+    return data
+
+
+def figure_strokes(data: dict[int, dict], path: Path) -> Path:
     """Paper Fig. 10: per digit, the first image with its pen path (start o, attractor *) and the demos in mm."""
     from lfd_torch.viz import save_figure
 
-    digits = sorted(tasks)
+    digits = sorted(data)
     fig, axes = _figure(2, len(digits))
     for j, d in enumerate(digits):
-        demos = tasks[d]["demos"]
-        index = int(demos.names[0].rsplit("/", 1)[-1])
-        img = images[index].numpy()
+        item = data[d]
+        demos, index = item["demos"], item["index"]
+        img = item["image"].numpy()
         H, W = img.shape
-        st = extract_stroke(images[index], **stroke_kw)
+        st = item["stroke"].numpy()
         ax = axes[0, j]
         ax.imshow(img, cmap="gray_r", extent=(-0.5, W - 0.5, -0.5, H - 0.5), alpha=0.6)
-        ax.scatter(st.path[:, 0], st.path[:, 1], c=np.linspace(0, 1, len(st.path)), cmap="viridis", s=1.5)
-        ax.plot(*st.path[0], "o", color="tab:green", ms=5)
-        ax.plot(*st.path[-1], "*", color="tab:red", ms=8)
-        ax.set_title(f"digit {d} (image {index})", fontsize=8)
+        ax.scatter(st[:, 0], st[:, 1], c=np.linspace(0, 1, len(st)), cmap="viridis", s=1.5)
+        ax.plot(*st[0], "o", color="tab:green", ms=5)
+        ax.plot(*st[-1], "*", color="tab:red", ms=8)
+        ax.set_title(f"digit {d} (image {index}), px", fontsize=8)
         ax.set_xticks([])
         ax.set_yticks([])
         _demo_panel(axes[1, j], demos)
@@ -236,14 +269,14 @@ def figure_strokes(tasks: dict[int, dict], images: torch.Tensor, stroke_kw: dict
     return save_figure(fig, path, dpi=150)
 
 
-def figure_rollouts(tasks: dict[int, dict], table: pd.DataFrame, path: Path) -> Path:
+def figure_rollouts(data: dict[int, dict], table: pd.DataFrame, path: Path) -> Path:
     """Paper Fig. 11: per digit, the rollouts of the framework (top) and of SEDS (bottom) over the demos."""
     from lfd_torch.viz import save_figure
 
-    digits = sorted(tasks)
+    digits = sorted(data)
     fig, axes = _figure(len(METHODS), len(digits))
     for j, d in enumerate(digits):
-        task = tasks[d]
+        task = data[d]
         for i, method in enumerate(METHODS):
             ax = axes[i, j]
             _demo_panel(ax, task["demos"], colour="0.5")
@@ -294,12 +327,16 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     summ = summary(table)
     md = summ.to_markdown(index=False, floatfmt=".3g")
     written.append(atomic_write(out_dir / "summary.md", lambda p: p.write_text(md + "\n")))
-    if cfg.figures:
-        fig_dir = Path(cfg.paths.figures) if cfg.publish else out_dir / "figures"
+    if cfg.figures or cfg.publish:
         images, _ = load_mnist(str(cfg.data.split), cfg.data.directory)
         stroke_kw = OmegaConf.to_container(cfg.data.stroke, resolve=True) if cfg.data.get("stroke") else {}
-        written.append(figure_strokes(tasks, images, dict(stroke_kw), fig_dir / "mnist_strokes.png"))
-        written.append(figure_rollouts(tasks, table, fig_dir / "mnist_rollouts.png"))
+        data = figure_data(tasks, images, dict(stroke_kw))
+        if cfg.figures:
+            fig_dir = Path(cfg.paths.figures) if cfg.publish else out_dir / "figures"
+            written.append(figure_strokes(data, fig_dir / "mnist_strokes.png"))
+            written.append(figure_rollouts(data, table, fig_dir / "mnist_rollouts.png"))
+        if cfg.publish:
+            written.extend(store(data, Path(cfg.paths.libraries)))
     if cfg.publish:
         tables = Path(cfg.paths.tables)
         written.append(write_table(table, tables / f"{cfg.experiment}.parquet", manifest=manifest))

@@ -12,8 +12,9 @@ Figures show each demonstration coloured by step over the regions where p(x | A_
     python experiments/segment_lasa.py -m seed=0,1,2
     python experiments/segment_lasa.py +experiment=segment_lasa_publish    # the README's table and figures
 
-``publish=true`` writes into ``paths.tables`` / ``paths.figures``; it is refused in a multirun (every job would
-overwrite the published files).
+``publish=true`` writes into ``paths.tables`` / ``paths.figures`` and stores each data set's segmentation and
+demonstrations under ``paths.libraries``/segment_lasa/<name>/ (what ``experiments/figures.py`` redraws the figures
+from); it is refused in a multirun (every job would overwrite the published files).
 """
 
 from __future__ import annotations
@@ -39,6 +40,10 @@ from lfd_torch.segmentation.plot import plot_segmentation
 from lfd_torch.segmentation.synthetic import multi_step_demos
 from lfd_torch.store import atomic_write, run_manifest, write_table
 from lfd_torch.utils import derive_seed
+from lfd_torch.viz.stored import save_demos
+
+#: Unit of each data set's state, on the figure axes (LASA: mm; the synthetic set has arbitrary units).
+UNITS = {"synthetic_3d": "a.u."}
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +59,19 @@ def datasets(cfg: DictConfig) -> dict[str, Demos]:
         syn = multi_step_demos(torch.Generator().manual_seed(data_seed), dim=3, **kw)
         out["synthetic_3d"] = syn.demos
     return out
+
+
+def draw(name: str, segmentation: Any, demos: Demos, path: Path) -> Path:
+    """The figure of one data set (shared with ``experiments/figures.py``)."""
+    plot_segmentation(segmentation, demos, path, title=f"{name}: {segmentation.n_steps} steps, "
+                      f"{segmentation.n_routes} routes", unit=UNITS.get(name, "mm"))  # fmt: skip
+    return path
+
+
+def store(name: str, segmentation: Any, demos: Demos, libraries: Path) -> list[Path]:
+    """Store what :func:`draw` needs under ``libraries/segment_lasa/<name>/``."""
+    where = libraries / "segment_lasa" / name
+    return [segmentation.save(where / "segmentation.pt"), save_demos(demos, where / "demos.pt", velocities=False)]
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
@@ -94,8 +112,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         if cfg.figures:
             fig_dir = Path(cfg.paths.figures) if cfg.publish else out_dir
             path = fig_dir / f"{cfg.experiment}_{name}.png"
-            plot_segmentation(seg, demos, path, title=f"{name}: {seg.n_steps} steps, {seg.n_routes} routes")
-            written.append(path)
+            written.append(draw(name, seg, demos, path))
+        if cfg.publish:
+            written += store(name, seg, demos, Path(cfg.paths.libraries))
     table = pd.DataFrame(rows)
     written.append(write_table(table, out_dir / "results.parquet", manifest=manifest))
     if cfg.publish:

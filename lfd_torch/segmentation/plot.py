@@ -24,6 +24,7 @@ def plot_segmentation(
     grid_size: int = 200,
     margin: float = 0.1,
     title: str | None = None,
+    unit: str | None = None,
 ):
     """Draw each demonstration coloured by step, the attractors g_m, and (2-D) the regions A_m.
 
@@ -37,6 +38,7 @@ def plot_segmentation(
         grid_size: region raster resolution per axis (2-D).
         margin: plot margin as a fraction of the data range.
         title: optional axes title.
+        unit: unit of the state, shown on the axes (e.g. ``"mm"``); None leaves the labels bare.
 
     Returns:
         matplotlib Figure.
@@ -81,12 +83,13 @@ def plot_segmentation(
     ax.legend(loc="best", fontsize=7)
     if title:
         ax.set_title(title)
-    ax.set_xlabel("x_1")
-    ax.set_ylabel("x_2")
+    suffix = f" ({unit})" if unit else ""
+    ax.set_xlabel("x_1" + suffix)
+    ax.set_ylabel("x_2" + suffix)
     if d == 2:
         ax.set_aspect("equal", adjustable="box")
     else:
-        ax.set_zlabel("x_3")
+        ax.set_zlabel("x_3" + suffix)
     if path is not None:
         from lfd_torch.store import atomic_path  # results store convention: atomic writes
 

@@ -7,6 +7,7 @@ Notation:
     hue      optional second grouping (e.g. ``split``: train/test), drawn as split halves when it has two levels
 
 Figures use the Agg canvas without pyplot and are saved atomically, the format following the extension.
+The checksummed files the published figures are redrawn from are read and written by :mod:`lfd_torch.viz.stored`.
 """
 
 from lfd_torch.viz.violin import MEAN_MARKER_GID, PlotError, metric_columns, save_figure, violin, violin_grid

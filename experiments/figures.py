@@ -1,0 +1,157 @@
+"""Redraw every published figure and summary table from the stored tables and libraries (``make figures``).
+
+Reads only ``results/tables/*`` and ``results/libraries/*`` (the project's ``results/``: ``$LFD_ROOT/results`` when
+``LFD_ROOT`` is set, else the checkout's) and never fits a model: the figures are drawn by the experiments' own
+plotting functions, on the stored segmentations, skill libraries and rollout paths, and the engine rollouts that
+the skill figures show are recomputed from the stored libraries with the same seeded starts and pushes.
+
+* ``segment_lasa``: ``segment_lasa_<set>.png`` (paper Figs 2, 6) from ``libraries/segment_lasa/<set>/``;
+* ``lasa_tasks``: per shape ``lasa_tasks_<shape>_{entropy,steps,modulation,pushes}.png`` and ``_tree.{txt,dot}``
+  (Figs 3, 5-8) from ``libraries/lasa_tasks/`` and the summary ``tables/lasa_tasks.md``;
+* ``lasa_benchmark``: for every ``tables/lasa_benchmark*.parquet`` the Fig. 9 violins
+  ``figures/<name>_violins.png`` and the summary ``tables/<name>_summary.{md,csv}`` (mean and std per method,
+  train and test);
+* ``mnist``: ``mnist_strokes.png``, ``mnist_rollouts.png`` (Figs 10, 11) from ``libraries/mnist/digit_<d>.pt``
+  and ``tables/mnist.md``.
+
+A missing or damaged stored file raises :class:`~lfd_torch.errors.StoreError` naming it (``make results`` writes
+them all). At the end, every file of ``results/figures`` that this run did not rewrite is listed.
+
+    python experiments/figures.py                      # everything (make figures)
+    python experiments/figures.py --only lasa_benchmark mnist
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import torch  # noqa: E402
+
+torch.set_num_threads(1)  # the busy-waiting default pool is ~10x slower on a loaded 2-core box
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import pandas as pd  # noqa: E402
+
+from lfd_torch.errors import StoreError  # noqa: E402
+from lfd_torch.segmentation import Segmentation  # noqa: E402
+from lfd_torch.store import PROVENANCE_COLUMNS, atomic_write, read_table  # noqa: E402
+from lfd_torch.viz.stored import load_config, load_demos, results_dir  # noqa: E402
+
+#: Figures other commands write into results/figures (not redrawn here).
+OTHER_FIGURES = ("scooping_",)
+
+
+def _table(results: Path, name: str) -> pd.DataFrame:
+    return read_table(results / "tables" / f"{name}.parquet")
+
+
+def _markdown(frame: pd.DataFrame, path: Path, floatfmt: str) -> Path:
+    md = frame.to_markdown(index=False, floatfmt=floatfmt)
+    return atomic_write(path, lambda p: p.write_text(md + "\n"))
+
+
+def segment_lasa_figures(results: Path, report: Callable[[Path], None]) -> None:
+    """``segment_lasa_<set>.png`` for every data set of ``tables/segment_lasa.parquet``, and its markdown."""
+    import segment_lasa
+
+    table = _table(results, "segment_lasa")
+    for name in pd.unique(table["shape"]):
+        where = results / "libraries" / "segment_lasa" / str(name)
+        seg = Segmentation.load(where / "segmentation.pt")
+        demos, _ = load_demos(where / "demos.pt")
+        report(segment_lasa.draw(str(name), seg, demos, results / "figures" / f"segment_lasa_{name}.png"))
+    shown = table.drop(columns=["experiment", "method", "fold", *(c for c in PROVENANCE_COLUMNS if c != "seed")],
+                       errors="ignore")  # fmt: skip
+    report(_markdown(shown, results / "tables" / "segment_lasa.md", ".4g"))
+
+
+def lasa_tasks_figures(results: Path, report: Callable[[Path], None]) -> None:
+    """Figs 3, 5-8 of every shape of ``tables/lasa_tasks.parquet``, and the summary markdown."""
+    import lasa_tasks
+
+    libraries = results / "libraries"
+    cfg = load_config(libraries / "lasa_tasks" / "config.json")
+    table = _table(results, "lasa_tasks")
+    for shape in pd.unique(table["shape"]):
+        tasks, fig6 = lasa_tasks.replay(cfg, str(shape), libraries)
+        for path in lasa_tasks.figures(cfg, str(shape), tasks, fig6, results / "figures"):
+            report(Path(path))
+    report(_markdown(lasa_tasks.summary(table), results / "tables" / "lasa_tasks.md", ".3g"))
+
+
+def lasa_benchmark_figures(results: Path, report: Callable[[Path], None]) -> None:
+    """Violins and summary of every stored ``lasa_benchmark*`` table."""
+    import lasa_benchmark
+
+    names = sorted(p.name[: -len(".parquet")] for p in (results / "tables").glob("lasa_benchmark*.parquet"))
+    if not names:
+        raise StoreError(f"no lasa_benchmark*.parquet in {results / 'tables'} (run make results)")
+    for name in names:
+        table = _table(results, name)
+        for path in lasa_benchmark.write_violins(table, results / "figures" / f"{name}_violins.png"):
+            report(path)
+        for path in lasa_benchmark.write_summary(lasa_benchmark.summary(table), results / "tables", f"{name}_summary"):
+            report(path)
+
+
+def mnist_figures(results: Path, report: Callable[[Path], None]) -> None:
+    """Figs 10-11 from ``libraries/mnist/digit_<d>.pt`` for every digit of ``tables/mnist.parquet``."""
+    import mnist
+
+    table = _table(results, "mnist")
+    data = mnist.load_figure_data(results / "libraries", sorted(int(d) for d in pd.unique(table["digit"])))
+    report(mnist.figure_strokes(data, results / "figures" / "mnist_strokes.png"))
+    report(mnist.figure_rollouts(data, table, results / "figures" / "mnist_rollouts.png"))
+    report(_markdown(mnist.summary(table), results / "tables" / "mnist.md", ".3g"))
+
+
+GROUPS: dict[str, Callable[[Path, Callable[[Path], None]], None]] = {
+    "segment_lasa": segment_lasa_figures,
+    "lasa_tasks": lasa_tasks_figures,
+    "lasa_benchmark": lasa_benchmark_figures,
+    "mnist": mnist_figures,
+}
+
+
+def stale_figures(results: Path, since: float) -> list[Path]:
+    """Files of ``results/figures`` last written before ``since`` (time.time()), other commands' figures aside."""
+    folder = results / "figures"
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith(OTHER_FIGURES)
+                  and p.stat().st_mtime < since)  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--only", nargs="+", choices=sorted(GROUPS), help="redraw these groups only")
+    args = ap.parse_args(argv)
+    results = results_dir()
+    start = time.time()
+    written: list[Path] = []
+
+    def report(path: Path) -> None:
+        written.append(Path(path))
+        try:
+            shown = Path(path).resolve().relative_to(results.parent.resolve())
+        except ValueError:
+            shown = Path(path)
+        print(f"[{time.time() - start:6.1f} s] {shown}", flush=True)
+
+    for name in args.only or list(GROUPS):
+        GROUPS[name](results, report)
+    print(f"{len(written)} files in {time.time() - start:.0f} s from {results / 'tables'} and {results / 'libraries'}")
+    stale = stale_figures(results, start) if not args.only else []
+    for path in stale:
+        print(f"not redrawn (no stored source): {path}", file=sys.stderr)
+    return 1 if stale else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
