@@ -16,10 +16,22 @@ Notation (symbols, shapes, units; B batch size; frames are the torso frame unles
 Modules: :mod:`~lfd_torch.robot.urdf` (kinematic table, URDF text), :mod:`~lfd_torch.robot.arm` (pytorch-kinematics
 FK and Jacobian, limits), :mod:`~lfd_torch.robot.plant` (MuJoCo model and simulation: masses, inertias, geoms,
 contacts), :mod:`~lfd_torch.robot.controller` (DLS velocity map, impedance law), :mod:`~lfd_torch.robot.system`
-(:func:`build_robot`, the ``conf/robot`` target).
+(:func:`build_robot`, the ``conf/robot`` target), :mod:`~lfd_torch.robot.demonstration` (seeded kinesthetic-style
+scooping demonstration, recorded-demonstration loader), :mod:`~lfd_torch.robot.task` (learning the task,
+orientation schedule, the batched controller), :mod:`~lfd_torch.robot.trials` (disturbed MuJoCo trials, success
+checks, Wilson intervals).
 """
 
 from lfd_torch.robot.arm import FRAME_NAMES, NEUTRAL_POSE, BaxterArm, check_joint_tensor
+from lfd_torch.robot.demonstration import (
+    STAGE_NAMES,
+    ScoopingDemonstration,
+    load_demonstration,
+    save_demonstration,
+    scooping_demonstration,
+    scooping_via_points,
+    solve_ik,
+)
 from lfd_torch.robot.controller import DLSVelocityMap, ImpedanceController, orientation_error
 from lfd_torch.robot.plant import (
     DEFAULT_DAMPING,
@@ -35,6 +47,26 @@ from lfd_torch.robot.plant import (
     cylinder_inertia,
 )
 from lfd_torch.robot.system import BaxterRobot, build_robot
+from lfd_torch.robot.task import (
+    ControlStep,
+    OrientationSchedule,
+    ScoopingController,
+    ScoopingTask,
+    controller_for,
+    learn_scooping,
+)
+from lfd_torch.robot.trials import (
+    DISTURBANCE_KINDS,
+    FORBIDDEN_CONTACTS,
+    Disturbance,
+    SuccessCriteria,
+    TrialBatch,
+    check_trials,
+    plan_disturbances,
+    run_trials,
+    start_configurations,
+    wilson_interval,
+)
 from lfd_torch.robot.urdf import (
     ARM_JOINT_NAMES,
     BAXTER_LEFT_TABLE,
@@ -49,30 +81,53 @@ from lfd_torch.robot.urdf import (
 __all__ = [
     "ARM_JOINT_NAMES",
     "BAXTER_LEFT_TABLE",
-    "DEFAULT_DAMPING",
-    "DEFAULT_STIFFNESS",
-    "DEFAULT_TOOL_OFFSET",
-    "FRAME_NAMES",
-    "LINK_BODIES",
-    "NEUTRAL_POSE",
-    "ROBOT_PARTS",
-    "ROOT_LINK",
-    "SCENE_OBJECTS",
-    "TOOL_LINK",
     "BaxterArm",
     "BaxterPlant",
     "BaxterRobot",
+    "ControlStep",
+    "DEFAULT_DAMPING",
+    "DEFAULT_STIFFNESS",
+    "DEFAULT_TOOL_OFFSET",
+    "DISTURBANCE_KINDS",
     "DLSVelocityMap",
+    "Disturbance",
+    "FORBIDDEN_CONTACTS",
+    "FRAME_NAMES",
     "ImpedanceController",
     "JointSpec",
+    "LINK_BODIES",
     "LinkBody",
+    "NEUTRAL_POSE",
+    "OrientationSchedule",
+    "ROBOT_PARTS",
+    "ROOT_LINK",
+    "SCENE_OBJECTS",
+    "STAGE_NAMES",
     "Scene",
+    "ScoopingController",
+    "ScoopingDemonstration",
+    "ScoopingTask",
+    "SuccessCriteria",
+    "TOOL_LINK",
+    "TrialBatch",
     "Vessel",
     "baxter_left_urdf",
     "baxter_mjcf",
     "build_robot",
     "check_joint_tensor",
+    "check_trials",
+    "controller_for",
     "cylinder_inertia",
+    "learn_scooping",
+    "load_demonstration",
     "orientation_error",
+    "plan_disturbances",
     "rpy_to_matrix",
+    "run_trials",
+    "save_demonstration",
+    "scooping_demonstration",
+    "scooping_via_points",
+    "solve_ik",
+    "start_configurations",
+    "wilson_interval",
 ]

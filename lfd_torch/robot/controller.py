@@ -78,6 +78,11 @@ class DLSVelocityMap:
         limit_buffer: distance (rad) kept from the hard limits by the position-limit saturation.
         orientation_weight: length (m) that weighs the angular rows of a pose task (v of shape (B, 6)).
         iterations: saturation passes (a joint saturated in a pass is fixed at its bound in the next).
+        null_space: projector of ``z``: ``damped`` ``I - J# J`` with the damped J# (the damping leaks a share
+            lambda^2 / (sigma^2 + lambda^2) of J z into the task along weak directions), or ``exact``: the
+            orthogonal projector onto the null space of J (from its SVD; singular values below 1e-9 count as 0),
+            which leaves the task velocity untouched: needed when the task velocity is small (close to an
+            attractor) and the posture far, where the leak would otherwise hold the tip off the target.
     """
 
     def __init__(
@@ -91,7 +96,13 @@ class DLSVelocityMap:
         limit_buffer: float = 0.01,
         orientation_weight: float = 0.1,
         iterations: int = 3,
+        null_space: str = "damped",
     ):
+        if null_space not in ("damped", "exact"):
+            from lfd_torch.errors import UnknownNameError
+
+            raise UnknownNameError("null_space projector", str(null_space), ("damped", "exact"))
+        self.null_space = null_space
         self.arm = BaxterArm() if arm is None else arm
         if not isinstance(self.arm, BaxterArm):
             raise InvalidArgumentError(f"arm must be a BaxterArm, got {type(arm).__name__}")
@@ -164,7 +175,14 @@ class DLSVelocityMap:
         def dls(Jw: torch.Tensor, rhs: torch.Tensor, zw: torch.Tensor) -> torch.Tensor:
             A = Jw @ Jw.transpose(1, 2) + lam2 * eye_m
             pinv = Jw.transpose(1, 2) @ torch.linalg.solve(A, eye_m.expand_as(A))  # (B, 7, m)
-            return (pinv @ rhs[..., None]).squeeze(-1) + ((eye7 - pinv @ Jw) @ zw[..., None]).squeeze(-1)
+            if self.null_space == "exact":
+                _, sv, vh = torch.linalg.svd(Jw, full_matrices=True)  # vh (B, 7, 7); rows beyond rank: null space
+                rank_mask = torch.cat([sv > 1e-9, sv.new_zeros(sv.shape[0], 7 - sv.shape[1], dtype=torch.bool)], -1)
+                vr = vh * rank_mask[..., None].to(vh.dtype)
+                proj = eye7 - vr.transpose(1, 2) @ vr
+            else:
+                proj = eye7 - pinv @ Jw
+            return (pinv @ rhs[..., None]).squeeze(-1) + (proj @ zw[..., None]).squeeze(-1)
 
         qdot = dls(J, v, z)
         # speed limits: scale the whole qdot (and the task) so that the direction is kept

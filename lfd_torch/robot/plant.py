@@ -518,7 +518,34 @@ class BaxterPlant:
         radial = can.radius - math.hypot(p[0] - can.center[0], p[1] - can.center[1])
         return float(min(surface - p[2], radial, p[2] - bottom))
 
+    def contacts_at(self, q, min_depth: float = 0.0) -> list[tuple[str, str]]:
+        """:meth:`contacts` of the arm at joint angles ``q`` (7,) rad (scratch data; the state is unchanged)."""
+        q = np.asarray(q, dtype=float)
+        self._check7(q, "q")
+        d = self.new_data()
+        d.qpos[:] = self.data.qpos
+        d.qpos[self.qpos_adr] = q
+        self._mj.mj_fwdPosition(self.model, d)  # kinematics and collision only: no forces on the scratch data
+        saved, self.data = self.data, d
+        try:
+            return self.contacts(min_depth)
+        finally:
+            self.data = saved
+
     # ------------------------------------------------------------------ disturbances
+    def teleport(self, q) -> None:
+        """Position jump: set the arm to ``q`` (7,) rad at rest (time, forces and the rest of the state kept), and
+        hold ``q`` as the set-point."""
+        q = np.asarray(q, dtype=float)
+        self._check7(q, "q")
+        if ((q < self.lower - 1e-9) | (q > self.upper + 1e-9)).any():
+            raise InvalidArgumentError("q violates the joint limits")
+        self.data.qpos[self.qpos_adr] = q
+        self.data.qvel[self.dof_adr] = 0.0
+        self.data.qacc_warmstart[:] = 0.0
+        self.set_command(q, np.zeros(N))
+        self._mj.mj_forward(self.model, self.data)
+
     def apply_force(self, body: str, force, torque=None) -> None:
         """Apply an external Cartesian ``force`` (3,) N (and ``torque`` (3,) N m) at the centre of mass of ``body``
         until :meth:`clear_forces`."""

@@ -14,7 +14,7 @@ from lfd_torch.robot.urdf import DEFAULT_TOOL_OFFSET
 __all__ = ["BaxterRobot", "build_robot"]
 
 _VELOCITY_KEYS = ("damping", "null_gain", "posture", "limit_margin", "limit_gain", "limit_buffer",
-                  "orientation_weight", "iterations")
+                  "orientation_weight", "iterations", "null_space")
 
 
 @dataclass
