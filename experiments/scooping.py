@@ -101,7 +101,8 @@ def run_batches(cfg: DictConfig, task: ScoopingTask, ctl: Any, robot: Any, q0: t
 
 # ---------------------------------------------------------------------------------------------- summary
 def summary(table: pd.DataFrame) -> pd.DataFrame:
-    """Success rate and Wilson 95 % interval per (kind of run, mode, stage, disturbance, label), with totals;
+    """Success rate and Wilson 95 % interval per (kind of run, mode, stage, disturbance, label), with totals, and the
+    strict rate that also fails a run on a contact a force pulse caused (``push_contacts``);
     ``disturbance = any`` counts the trials that were disturbed (a jump without a valid landing point is skipped and
     its trial, ``disturbance = none``, stays undisturbed)."""
     out = []
@@ -109,9 +110,13 @@ def summary(table: pd.DataFrame) -> pd.DataFrame:
     def add(frame: pd.DataFrame, **keys: Any) -> None:
         n, k = len(frame), int(frame.success.sum())
         lo, hi = wilson_interval(k, n)
+        # strict: a contact that began during a force pulse (attributed to the push by the success check) fails too
+        ks = int((frame.success & (frame.push_contacts == "")).sum())
+        slo, shi = wilson_interval(ks, n)
         reasons = frame.loc[~frame.success, "reason"].str.replace(r" at [0-9.]+ s", "", regex=True).value_counts()
         out.append({**keys, "n": n, "successes": k, "rate": k / n if n else math.nan, "wilson_lo": lo,
-                    "wilson_hi": hi, "failures": "; ".join(f"{r} x{c}" for r, c in reasons.items())})  # fmt: skip
+                    "wilson_hi": hi, "strict_rate": ks / n if n else math.nan, "strict_lo": slo, "strict_hi": shi,
+                    "failures": "; ".join(f"{r} x{c}" for r, c in reasons.items())})  # fmt: skip
 
     for (kind, mode), f in table.groupby(["kind", "method"], sort=False):
         add(f, kind=kind, method=mode, stage="all", disturbance="all", label="all")

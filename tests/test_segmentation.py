@@ -527,6 +527,91 @@ def test_bad_input_typed_errors():
         FixedSegmenter([0.5, 0.2])
 
 
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [
+        ("n_initial_features", 1000), ("n_initial_features", 0), ("n_initial_features", 2.5),
+        ("n_chains", 1000), ("n_chains", True), ("n_iterations", 10**6), ("n_iterations", 0),
+        ("max_samples", 5000), ("max_samples", 80.0), ("feature_mass", 1e6), ("feature_mass", float("nan")),
+        ("stickiness", float("inf")), ("birth_window", 1.5), ("birth_prior_mix", 1.0), ("burn_in", 1.0),
+        ("direction_noise", 0.0), ("robust_dof", -1.0), ("progress", 1),
+    ],
+)  # fmt: skip
+def test_hyperparameters_that_scale_the_cost_are_bounded(name, value):
+    """Property (issue 11): a hyperparameter out of its range raises InvalidArgumentError naming it and the
+    accepted range, at once (before any sampling: the call with the 1000-feature setting used to run for minutes)."""
+    import time
+
+    g = torch.Generator().manual_seed(0)
+    demos = multi_step_demos(g, n_demos=3, n_steps=3, samples_per_step=40, profile="constant").demos
+    t0 = time.perf_counter()
+    with pytest.raises(InvalidArgumentError, match=name) as info:
+        segment(demos, generator=g, **{name: value})
+    assert time.perf_counter() - t0 < 1.0
+    assert "got" in str(info.value) and ("[" in str(info.value) or "(" in str(info.value) or "bool" in str(info.value))
+
+
+def test_hyperparameter_bounds_accept_their_edges():
+    """Property: the range ends themselves are accepted (the check does not reject valid settings)."""
+    from lfd_torch.segmentation.sampler import HYPERPARAMETER_RANGES, BetaProcessHMMSampler
+
+    for name, (kind, low, high, low_in, high_in) in HYPERPARAMETER_RANGES.items():
+        for edge, inclusive in ((low, low_in), (high, high_in)):
+            if inclusive:
+                BetaProcessHMMSampler(**{name: kind(edge)})
+
+
+def test_demonstrations_of_one_repeated_point_raise_a_typed_error():
+    """Property (issue 11): a demonstration without motion has no direction to segment: InvalidDemoError naming
+    the demonstration, alone or next to a moving one (it used to end in a raw LinAlgError from a Cholesky)."""
+    from lfd_torch.errors import InvalidDemoError
+
+    g = torch.Generator().manual_seed(0)
+    still = torch.full((120, 2), 0.5, dtype=F64)
+    moving = torch.cumsum(torch.randn(120, 2, generator=g, dtype=F64), 0)
+    with pytest.raises(InvalidDemoError, match="demonstration 0: does not move"):
+        segment([still, still, still], generator=g)
+    with pytest.raises(InvalidDemoError, match="demonstration 1: does not move"):
+        segment([moving, still], generator=g)
+
+
+def test_malformed_arguments_raise_typed_errors_naming_them(tmp_path):
+    """Property (issue 11): demos, generator, min_length, FixedSegmenter boundaries, the x of
+    ``Segmentation.log_density`` and a foreign file given to ``Segmentation.load`` raise typed lfd_torch errors
+    whose message names the argument (or the file), never a builtin error or a silent result."""
+    from lfd_torch.errors import LfdError
+
+    g = torch.Generator().manual_seed(0)
+    demos = multi_step_demos(g, n_demos=2, n_steps=3, samples_per_step=40, profile="constant").demos
+    calls = {
+        "demos": [lambda: segment(None, generator=g), lambda: segment(3, generator=g), lambda: segment([], generator=g),
+                  lambda: segment("abc", generator=g), lambda: segment([torch.zeros(5, 2, dtype=F64)], generator=g)],
+        "generator": [lambda: segment(demos, generator=None), lambda: segment(demos, generator=0)],
+        "min_length": [lambda: segment(demos, generator=g, min_length=1.5),
+                       lambda: segment(demos, generator=g, min_length=float("nan"))],
+        "boundaries": [lambda: FixedSegmenter([1.5]), lambda: FixedSegmenter(["a"]),
+                       lambda: FixedSegmenter([0.6, 0.4])],
+    }  # fmt: skip
+    for name, fns in calls.items():
+        for fn in fns:
+            with pytest.raises(LfdError, match=name):
+                fn()
+    seg = FixedSegmenter([1 / 3, 2 / 3])(demos)
+    x = demos.positions[0, :5]
+    bad_x = [(x.tolist(), InvalidArgumentError), (x.numpy(), InvalidArgumentError), (None, InvalidArgumentError),
+             (torch.tensor(1.0, dtype=F64), ShapeMismatchError), (x[:, :1], ShapeMismatchError),
+             (x.to(torch.complex128), InvalidArgumentError), (x.long(), InvalidArgumentError),
+             (x.clone().fill_(float("nan")), NonFiniteError), (x.clone().fill_(float("inf")), NonFiniteError)]
+    for bad, err in bad_x:
+        with pytest.raises(err, match="x"):
+            seg.log_density(bad)
+    assert seg.log_density(x).shape == (5, 3)  # the valid call still works
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"schema_version": 1}, foreign)
+    with pytest.raises(StoreError, match="foreign.pt"):
+        Segmentation.load(foreign)
+
+
 def test_one_dimensional_data_raise_a_typed_error():
     """Property: 1-D data (a direction field has only two directions) raise InvalidArgumentError naming d >= 2;
     the segmenters without an HMM accept them."""

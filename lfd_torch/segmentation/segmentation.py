@@ -53,6 +53,26 @@ after the sampler creates, removes, merges or moves a step across a state switch
        (switches at dwelling corners 3-4 % of the length off); with Psi_k + c_t I it tends to 1. This cannot create or
        remove a step: it only resolves the time of a switch that the sampler found. At a rest the samples carry no
        direction information (w_t -> 0), the posterior is flat over the rest and the switch falls in its middle.
+Known limit (measured, not fixed): a step is what ONE affine direction field describes, so a narrow hairpin
+traversed at speed and a reversal at a near-rest are switches to this model whatever a task's semantics say.
+On the Baxter scooping demonstration (``lfd_torch.robot.demonstration``, one demonstration, Preprocess defaults)
+the generator's scoop stage is a U about 12 cm deep and a few cm wide (down into the sugar, drag, up) and its
+transport stage descends onto the cup, tips the spoon with the tip nearly still (0.3-1.5 cm/s at the slowest,
+seeds 0-3 without tremor) and lifts away up and back. The model finds 5-7 steps, never 3, on seeds 0-9
+(approach, down, drag-and-up, carry, lift away; sometimes the U or the carry cut once more). On the sampler's
+grid the emission plus the MNIW field prior of the steps found exceed those of the three ground-truth stages
+(each labelling with its posterior-mean fields) by 130-180 nats (``experiments/bench_scooping_segmentation.py
+--evidence``), against about 3.4 nats for each extra switch under the default sticky transitions. On seed 0 one
+field over the whole U fits its samples at about 0.5 nats each against 2.9 for a straight leg, and its slope
+(3-5 on the standardised scale, against a prior standard deviation of 1) costs another ~26 nats of prior
+density. No variant tried gives 3 steps on any seed: a 4x looser slope and offset prior (seeds 0-5), quadratic
+fields (seeds 0-5), ``max_samples=200`` with affine or quadratic fields, ``stickiness=500``,
+``min_length=0.12``, ``direction_noise=0.5`` (seeds 0-3 each). The cue that separates the generator's stages
+from those within-stage turns is the 0.2-0.5 s rest before each stage switch, and the path-length grid (item 3c)
+deliberately gives a rest no grid point. A rest-aware transition model would have to charge 65-90 nats for a
+switch made at speed to keep the two within-stage turns; by the same computation (merging two true steps) the
+true corners of ``straight_const_3d`` (seeds 0-5, 1 demonstration) carry 18-87 nats, those of 30-50 degrees
+18-25, so such a charge would remove most true corners met at speed. It is not used.
 Steps across demonstrations are matched by the model's features, not by their order (item 2 of the design):
 each demonstration is the sequence of the states of its runs; two demonstrations belong to one route when the
 states they share (a longest common subsequence of their run states) cover at least half of the samples of
@@ -96,6 +116,7 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -106,7 +127,15 @@ import torch
 from torch import Tensor
 
 from lfd_torch.data import Demos
-from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError, StoreError, TooFewSamplesError
+from lfd_torch.errors import (
+    InvalidArgumentError,
+    InvalidDemoError,
+    NonFiniteError,
+    ShapeMismatchError,
+    SolverError,
+    StoreError,
+    TooFewSamplesError,
+)
 from lfd_torch.gmm import GaussianBank, gaussian_log_density
 from lfd_torch.segmentation.field import field_log_likelihood_additive, field_observations
 from lfd_torch.segmentation.sampler import BetaProcessHMMSampler, SamplerResult
@@ -130,6 +159,7 @@ class SegmentationWarning(UserWarning):
 
 SCHEMA_VERSION = 3
 DEFAULT_MIN_LENGTH = 0.04  # shortest step, fraction of a demonstration (``segment``'s default)
+MAX_GRID = 1000  # largest ``max_samples``: the sweep costs O(T (K D)^2) with D ~ min_length T (T^3 in T)
 
 
 # ---------------------------------------------------------------------------------------------- result
@@ -194,13 +224,23 @@ class Segmentation:
         """log p(x | A_m) = max_j [log w_mj + log N(x; mu_j, Sigma_j)] for every step (module docstring).
 
         Args:
-            x: (..., d) states.
+            x: (..., d) states, real floating point, finite.
 
         Returns:
             (..., M) log densities.
+
+        Raises:
+            InvalidArgumentError: x is not a real floating-point tensor. ShapeMismatchError: its last axis is not d.
+            NonFiniteError: it holds NaN or Inf.
         """
-        if x.shape[-1] != self.dim:
-            raise ShapeMismatchError(f"x has dimension {x.shape[-1]}, the segmentation {self.dim}")
+        if not isinstance(x, Tensor):
+            raise InvalidArgumentError(f"x must be a torch.Tensor of shape (..., {self.dim}), got {type(x).__name__}")
+        if x.ndim == 0 or x.shape[-1] != self.dim:
+            raise ShapeMismatchError(f"x has shape {tuple(x.shape)}, the segmentation needs (..., {self.dim})")
+        if not x.dtype.is_floating_point:
+            raise InvalidArgumentError(f"x must hold real floating-point numbers, got {x.dtype}")
+        if not bool(torch.isfinite(x).all()):
+            raise NonFiniteError("x contains NaN or Inf")
         lead = x.shape[:-1]
         flat = x.reshape(-1, self.dim).to(self.space_mean)
         bank, index, logw = self._density_tables
@@ -351,7 +391,10 @@ class Segmentation:
         if not isinstance(state, dict):
             raise StoreError(f"{str(path)!r} does not hold a segmentation state dict")
         verify_digest(state, f"segmentation file {str(path)!r}")
-        return cls.from_state_dict(state)
+        try:
+            return cls.from_state_dict(state)
+        except StoreError as exc:
+            raise StoreError(f"{str(path)!r}: {exc}") from exc
 
     def table(self) -> list[dict[str, Any]]:
         """One row per step: index, route, HMM state, attractor, number of pieces, mean start/end fraction."""
@@ -393,8 +436,11 @@ def runs(labels: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 def resolve_min_length(min_length: float, length: int) -> int:
     """Minimum step length in samples: ``min_length`` samples if >= 1, else that fraction of ``length`` (>= 3)."""
-    if not (isinstance(min_length, (int, float)) and math.isfinite(min_length) and min_length > 0):
-        raise InvalidArgumentError(f"min_length must be a positive number, got {min_length!r}")
+    number = isinstance(min_length, numbers.Real) and not isinstance(min_length, bool)
+    whole = number and math.isfinite(min_length) and (min_length < 1 or min_length == int(min_length))
+    if not (whole and min_length > 0):
+        raise InvalidArgumentError(f"min_length must be a fraction in (0, 1) or a whole number of samples >= 1, "
+                                   f"got {min_length!r}")
     n = int(min_length) if min_length >= 1 else int(math.ceil(min_length * length))
     return max(n, 3)
 
@@ -647,11 +693,16 @@ def _subtask_spaces(
 
 def _check_demos(demos: Demos | Sequence[Tensor], min_len_param: float) -> Demos:
     if not isinstance(demos, Demos):
-        demos = Demos.from_sequences(list(demos))  # typed errors on shape / NaN / too short
+        if isinstance(demos, (str, bytes)) or not isinstance(demos, Sequence) or len(demos) == 0:
+            raise InvalidArgumentError(f"demos must be a Demos or a non-empty list of (T_i, d) tensors, got {demos!r}")
+        try:
+            demos = Demos.from_sequences(list(demos))  # typed errors on shape / NaN / too short
+        except InvalidDemoError as exc:  # same type, the message names the argument
+            raise type(exc)(f"demos: {exc.problem}", exc.demo_index) from exc
     for i, n in enumerate(demos.lengths.tolist()):
         m = resolve_min_length(min_len_param, n)
         if n < 2 * m:
-            raise TooFewSamplesError(f"has {n} samples; segmentation needs at least 2 * min_length = {2 * m}", i)
+            raise TooFewSamplesError(f"has {n} samples; segmenting demos needs at least 2 * min_length = {2 * m}", i)
     return demos
 
 
@@ -746,30 +797,52 @@ def segment(
             sequence's length (< 1); every sequence needs at least 2 * min_length samples. On the sampler's
             path-length grid it is the same fraction of the path (module docstring, item 3).
         max_samples: points per sequence on the sampler's grid, at most (time stride k = ceil(T_i / max_samples),
-            ceil(T_i / k) points equally spaced in path length, module docstring item 3).
+            ceil(T_i / k) points equally spaced in path length, module docstring item 3); 8..1000 (a sweep costs
+            O(T (K D)^2) on a grid of T points with D ~ min_length T, so about T^3; 3 x 1200 samples, 2-D:
+            80 / 200 / 400 -> 1.1 / 2.4 / 3.9 s).
         direction_noise: tolerance of a state's direction field, the prior expected direction noise (unit
             vectors, ~radians).
         extra_dof: weight of that prior expectation (pseudo-observations of the noise covariance).
-        Remaining keyword arguments: see :class:`BetaProcessHMMSampler`.
+        Remaining keyword arguments: see :class:`BetaProcessHMMSampler`; their accepted ranges (upper bounds where
+            a hyperparameter scales the cost, with the measured cost) are
+            :data:`~lfd_torch.segmentation.sampler.HYPERPARAMETER_RANGES`.
 
     Returns:
         Segmentation; ``info`` holds timings, the strides, the grid (full-rate sample of every grid point), the
         minimum duration on the grid, the position noise estimate, the interior velocity noise and the coarse runs.
 
     Raises:
-        InvalidArgumentError: 1-D data or bad hyperparameters.
+        InvalidArgumentError: 1-D data or a hyperparameter out of its range (the message names it and the range).
         TooFewSamplesError: a sequence shorter than 2 * min_length.
+        InvalidDemoError: a demonstration that does not move (one repeated point).
+        SolverError: a linear-algebra failure inside the sampler (the cause chained).
     """
+    # every hyperparameter first (typed errors naming it, before any work; the bounds keep the cost finite)
+    if not isinstance(generator, torch.Generator):
+        raise InvalidArgumentError(f"generator must be a torch.Generator, got {generator!r}")
+    integral = isinstance(max_samples, numbers.Integral) and not isinstance(max_samples, bool)
+    if not (integral and 8 <= max_samples <= MAX_GRID):
+        raise InvalidArgumentError(f"max_samples must be an integer in [8, {MAX_GRID}], got {max_samples!r}")
+    sampler = BetaProcessHMMSampler(
+        feature_mass=feature_mass, feature_concentration=feature_concentration,
+        transition_concentration=transition_concentration, stickiness=stickiness,
+        direction_noise=direction_noise, extra_dof=extra_dof, robust_dof=robust_dof,
+        n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
+        birth_window=birth_window, birth_prior_mix=birth_prior_mix,
+        resample_hyperparameters=resample_hyperparameters, progress=progress,
+    )  # fmt: skip
     demos = _check_demos(demos, min_length)
     if demos.dim < 2:
         raise InvalidArgumentError(
             "BP-GM-HMM segmentation needs d >= 2: its states are fields of motion directions, and a 1-D path has "
             "only two; use FixedSegmenter or NoSegmenter for 1-D data"
         )
-    if not (isinstance(max_samples, int) and max_samples >= 8):
-        raise InvalidArgumentError(f"max_samples must be an integer >= 8, got {max_samples!r}")
     t0 = time.perf_counter()
     seqs_full = [s.to(torch.float64) for s in demos.sequences()]
+    for i, s in enumerate(seqs_full):
+        if not bool((s != s[:1]).any()):
+            raise InvalidDemoError("does not move (every sample is the same point): its motion has no direction, "
+                                   "so the BP-GM-HMM has nothing to segment", i)
     times = [demos.times[i, : int(demos.lengths[i])].to(torch.float64) for i in range(demos.n_demos)]
     dts = [float((t[1:] - t[:-1]).median()) for t in times]
     strides = [max(1, math.ceil(s.shape[0] / max_samples)) for s in seqs_full]
@@ -784,18 +857,13 @@ def segment(
     vs = [v[g] for v, g in zip(vel_full, grid)]
     min_lens = [resolve_min_length(min_length, s.shape[0]) for s in seqs_full]
     duration = max(1, min(math.ceil(m * g.shape[0] / s.shape[0]) for m, g, s in zip(min_lens, grid, seqs_full)))
-    sampler = BetaProcessHMMSampler(
-        feature_mass=feature_mass, feature_concentration=feature_concentration,
-        transition_concentration=transition_concentration, stickiness=stickiness,
-        direction_noise=direction_noise, extra_dof=extra_dof, robust_dof=robust_dof,
-        n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
-        birth_window=birth_window, birth_prior_mix=birth_prior_mix,
-        resample_hyperparameters=resample_hyperparameters, progress=progress,
-    )  # fmt: skip
     n_max = max(x.shape[0] for x in xs)
     sigma_v_t = torch.stack([torch.cat([sv[g], sv[g][-1:].expand(n_max - g.shape[0])])
                              for sv, g in zip(sigma_v_full, grid)])  # (N, T) on the grid, padded
-    result = sampler.run(xs, vs, generator, min_duration=duration, velocity_noise=sigma_v_t, speed_floor=s_floor)
+    try:
+        result = sampler.run(xs, vs, generator, min_duration=duration, velocity_noise=sigma_v_t, speed_floor=s_floor)
+    except torch.linalg.LinAlgError as exc:  # a degenerate field posterior (e.g. data without any spread)
+        raise SolverError(f"the BP-GM-HMM sampler failed on these demonstrations: {exc}") from exc
     t1 = time.perf_counter()
     # full-rate state sequences: the coarse runs, each switch placed by the change-point posterior
     runs_all: list[list[tuple[int, int, int]]] = []  # (state, start, end) at full rate
@@ -887,9 +955,13 @@ class FixedSegmenter:
     """
 
     def __init__(self, boundaries: Sequence[float] = ()) -> None:
-        b = [float(v) for v in boundaries]
+        try:
+            b = [float(v) for v in boundaries]
+        except (TypeError, ValueError) as exc:
+            msg = f"boundaries must be increasing fractions in (0, 1), got {boundaries!r}"
+            raise InvalidArgumentError(msg) from exc
         if any(not 0 < v < 1 for v in b) or any(b2 <= b1 for b1, b2 in zip(b, b[1:])):
-            raise ValueError(f"boundaries must be increasing fractions in (0, 1), got {b}")
+            raise InvalidArgumentError(f"boundaries must be increasing fractions in (0, 1), got {b}")
         self.boundaries = b
 
     def __call__(self, demos: Demos | Sequence[Tensor], *, generator: torch.Generator | None = None) -> Segmentation:
