@@ -418,6 +418,36 @@ def test_batched_equals_loop_and_shapes(generator: torch.Generator) -> None:
     torch.testing.assert_close(renyi_entropy(prim, x.reshape(4, 5, 3)).reshape(20), renyi_entropy(prim, x))
 
 
+@pytest.mark.parametrize("d", [2, 3])
+def test_feature_major_layout_equals_the_row_major_one(d: int, generator: torch.Generator) -> None:
+    """``dim=0`` (the engine's (d, n) layout) gives the (n, d) results transposed, in every mode, with states at
+    the goal, outside and inside A_m and on both sides of H2_ref."""
+    from lfd_torch.modulation import modulated_velocity_unchecked, radial_component
+
+    n = 400
+    g = torch.randn(d, generator=generator, dtype=torch.float64)
+    x = g + torch.randn(n, d, generator=generator, dtype=torch.float64)
+    x[:5] = g  # at the goal
+    f = torch.randn(n, d, generator=generator, dtype=torch.float64)
+    own = torch.randn(n, generator=generator, dtype=torch.float64)
+    other = torch.randn(n, generator=generator, dtype=torch.float64)
+    h2 = torch.randn(n, generator=generator, dtype=torch.float64)
+    ref = torch.randn(n, generator=generator, dtype=torch.float64)
+    xt, ft = x.T.contiguous(), f.T.contiguous()
+    unit, r = goal_direction(x, g)
+    unit_t, r_t = goal_direction(xt, g.unsqueeze(-1), dim=0)
+    torch.testing.assert_close(unit_t.T, unit, rtol=1e-15, atol=1e-15)
+    torch.testing.assert_close(r_t, r, rtol=1e-15, atol=0.0)
+    torch.testing.assert_close(radial_component(ft, unit_t, dim=0), radial_component(f, unit), rtol=1e-14, atol=1e-15)
+    for mode in MODULATION_MODES:
+        a = modulated_velocity_unchecked(x, f, g, own, other, h2, ref, mode, 2.5, 0.1)
+        b = modulated_velocity_unchecked(xt, ft, g.unsqueeze(-1), own, other, h2, ref, mode, 2.5, 0.1, dim=0)
+        torch.testing.assert_close(b.velocity.T, a.velocity, rtol=1e-14, atol=1e-15)
+        assert torch.equal(b.branch, a.branch) and b.branch.shape == (n,)
+        if mode == "full":
+            assert {int(v) for v in a.branch.unique()} == {int(v) for v in Branch}
+
+
 def test_modes(generator: torch.Generator) -> None:
     prim = pqlf_primitive(2, 3, generator)
     x = _sample_states(prim, 200, generator)

@@ -13,7 +13,7 @@ from lfd_torch.data.lasa import load_lasa
 from lfd_torch.ds import fit_lpvds, fit_seds
 from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError, StoreError
 from lfd_torch.gmm import PCGMMFitter
-from lfd_torch.modulation import Branch, Modulation, renyi_entropy
+from lfd_torch.modulation import Branch, Modulation, modulated_velocity, renyi_entropy
 from lfd_torch.segmentation import FixedSegmenter, segment
 from lfd_torch.segmentation.synthetic import multi_step_demos
 from lfd_torch.skills import (
@@ -325,6 +325,25 @@ def test_rate_floor_is_the_minimum_norm_correction() -> None:
     assert torch.equal(rate_floor(v[:3], torch.zeros(3, d, dtype=F64), P, rho), v[:3])
 
 
+def test_rate_floor_and_speed_cap_in_the_feature_major_layout() -> None:
+    """``dim=0`` with a precomputed P e (the engine's (d, n) layout) equals the (n, d) form transposed; P e is
+    required for a leading vector axis."""
+    gen = torch.Generator().manual_seed(2)
+    d, n = 3, 300
+    L = torch.randn(n, d, d, generator=gen, dtype=F64)
+    P = L @ L.transpose(-1, -2) + 0.2 * torch.eye(d, dtype=F64)
+    e, v = torch.randn(n, d, generator=gen, dtype=F64), torch.randn(n, d, generator=gen, dtype=F64)
+    rho = torch.rand(n, generator=gen, dtype=F64)
+    Pe = (P @ e.unsqueeze(-1)).squeeze(-1)
+    got = rate_floor(v.T.contiguous(), e.T.contiguous(), None, rho, dim=0, Pe=Pe.T.contiguous())
+    assert torch.allclose(got.T, rate_floor(v, e, P, rho), rtol=1e-14, atol=1e-14)
+    r = torch.rand(n, generator=gen, dtype=F64)
+    capped = speed_cap(v.T.contiguous(), r, 0.5, 0.7, dim=0)
+    assert torch.allclose(capped.T, speed_cap(v, r, 0.5, 0.7), rtol=1e-14, atol=0)
+    with pytest.raises(InvalidArgumentError, match="Pe"):
+        rate_floor(v.T, e.T, P, rho, dim=0)
+
+
 def test_a_crawling_primitive_arrives_in_bounded_time_with_the_rate_floor(l_library: SkillLibrary) -> None:
     """Slow every primitive by 1e-3 (still certified): without the rate floor the task does not finish in the
     budget, with it it does, within the bound ln(V(x0) / (lambda_min(P) r_a^2)) / rho of every step; dV/dt < 0."""
@@ -425,6 +444,158 @@ def test_stacked_evaluation_equals_each_primitive(l_library: SkillLibrary) -> No
         rows = step == m
         assert torch.allclose(f[rows], s.primitive(x[rows]), rtol=1e-10, atol=1e-12)
         assert torch.allclose(h2[rows], renyi_entropy(s.primitive, x[rows]), rtol=1e-10, atol=1e-10)
+
+
+def test_sorted_stack_evaluation_equals_the_padded_one(l_library: SkillLibrary) -> None:
+    """The step-grouped quadratic-feature evaluation (large batches) equals each primitive and the padded stack,
+    from the data out to states where every exponent underflows (the clamped exponentials)."""
+    from lfd_torch.skills.stack import PrimitiveStack
+
+    lib = l_library
+    stack = PrimitiveStack([s.primitive for s in lib.skills], dtype=F64, device=torch.device("cpu"))
+    gen = torch.Generator().manual_seed(14)
+    x = torch.cat([0.3 * torch.randn(400, 2, generator=gen, dtype=F64),
+                   30 * torch.randn(100, 2, generator=gen, dtype=F64)])  # fmt: skip
+    step = torch.randint(0, lib.n_steps, (500,), generator=gen)
+    need = torch.rand(500, generator=gen) < 0.5
+    key = 2 * step + need.long()
+    perm = torch.argsort(key)
+    bounds = [0] + torch.bincount(key, minlength=2 * lib.n_steps).cumsum(0).tolist()
+    groups = [(m, bounds[2 * m], bounds[2 * m + 1], bounds[2 * m + 2]) for m in range(lib.n_steps)]
+    e = (x[perm] - lib.attractors[step[perm]]).T.contiguous()
+    f, h2 = stack.evaluate_sorted(e, groups)
+    f0, h0 = stack.evaluate(x[perm], step[perm], entropy=True)
+    assert torch.allclose(f.T, f0, rtol=1e-11, atol=1e-12)
+    rows = need[perm]
+    assert bool(rows.any()) and bool((~rows).any())
+    assert torch.allclose(h2[rows], h0[rows], rtol=1e-12, atol=1e-9)
+    assert bool((h2[~rows] == -math.inf).all())  # not evaluated where not asked for
+    for m, s in enumerate(lib.skills):
+        sel = step[perm] == m
+        assert torch.allclose(f.T[sel], s.primitive(x[perm][sel]), rtol=1e-11, atol=1e-12)
+
+
+def _reference_tick(lib: SkillLibrary, mod: Modulation, arrival: Arrival, x: torch.Tensor, route: int, index: int):
+    """One state ticked by hand from the public pieces: ``Segmentation.log_density``, the arrival ball, the
+    primitive's own f and ``renyi_entropy``, the checked ``modulated_velocity``, ``rate_floor`` and ``speed_cap``
+    with the constants the Arrival docstring defines. Returns (route, index, step, done, inside, u, branch)."""
+    ld = lib.segmentation.log_density(x.unsqueeze(0))[0].tolist()
+    routes = lib.routes
+    if route < 0:  # the most likely first subtask space, the first route on ties
+        route = max(range(len(routes)), key=lambda r: (ld[routes[r][0]], -r))
+    steps = routes[route]
+    j = index
+    while j < len(steps) and float(torch.linalg.vector_norm(x - lib.attractors[steps[j]])) < arrival.radius * lib.span:
+        j += 1
+    done = j >= len(steps)
+    m = steps[min(j, len(steps) - 1)]
+    own, other = ld[m], max([v for k, v in enumerate(ld) if k != m], default=-math.inf)
+    inside = own >= other and not done
+    if done:
+        return route, j, m, True, False, torch.zeros_like(x), int(Branch.AT_GOAL)
+    skill = lib.skills[m]
+    prim, xb = skill.primitive, x.unsqueeze(0)
+    h2 = renyi_entropy(prim, xb) if mod.uses_entropy else None
+    res = modulated_velocity(xb, prim(xb), prim.attractor, log_p_own=own, log_p_other=-math.inf if inside else other,
+                             h2=h2, h2_ref=skill.h2_ref, mode=mod.mode, lambda_limit=mod.lambda_limit,
+                             radial_floor=mod.radial_floor)  # fmt: skip
+    e = xb - prim.attractor
+    u = rate_floor(res.velocity, e, prim.P, arrival.min_rate / max(skill.duration, 1e-9))
+    r = torch.linalg.vector_norm(e, dim=-1)
+    u = speed_cap(u, r, arrival.max_speed * skill.speed, arrival.slow_radius * lib.span)
+    return route, j, m, False, inside, u[0], int(res.branch[0])
+
+
+@pytest.mark.parametrize("mode", ["none", "large", "small", "full"])
+def test_batched_tick_equals_a_per_row_reference(mode: str, mm3_all) -> None:
+    """The optimised batched tick (SubtaskBank densities, step-grouped velocities) against a straightforward
+    per-row tick on 2,000 random states of Multi_Models_3 (14 steps, 2 routes; a quarter of them new tasks):
+    the same route, progress, step, subtask decision and branch for every row, and the same velocity to rounding,
+    in the large-batch (grouped) path and in the small-batch (dense) one; in mode full the py_trees tick agrees too.
+    The velocity tolerance is rounding: the stack's H2 (e^T Q_ij e) and ``renyi_entropy`` (whitened pairwise
+    differences) differ by ~2e-10 relative, as they did before this path existed."""
+    from lfd_torch.skills.engine import GROUPED_MIN_ROWS
+
+    lib = mm3_all[1]
+    eng = SkillEngine(lib, mode)
+    n = 2000
+    x, route, index = _random_pairs(lib, n, torch.Generator().manual_seed(7))
+    fresh = torch.arange(n) % 4 == 0
+    route, index = torch.where(fresh, -1, route), torch.where(fresh, 0, index)
+    v, dec, branch = eng.step_batch(x, route, index)
+    k = GROUPED_MIN_ROWS // 2  # the dense path, block by block
+    dense = [eng.velocity(x[i : i + k], dec.step[i : i + k], dec.done[i : i + k], dec.inside[i : i + k])
+             for i in range(0, n, k)]  # fmt: skip
+    v_dense, b_dense = torch.cat([d[0] for d in dense]), torch.cat([d[1] for d in dense])
+    assert torch.equal(b_dense, branch)
+    assert torch.allclose(v_dense, v, rtol=1e-11, atol=1e-12)
+    for i in range(n):
+        r, j, m, done, inside, u, b = _reference_tick(lib, eng.modulation, eng.arrival, x[i], int(route[i]),
+                                                      int(index[i]))  # fmt: skip
+        got = (int(dec.route[i]), int(dec.index[i]), int(dec.step[i]), bool(dec.done[i]), bool(dec.inside[i]))
+        assert got == (r, j, m, done, inside), i
+        assert int(branch[i]) == b, i
+        assert torch.allclose(v[i], u, rtol=1e-9, atol=1e-12), i
+        if mode == "full":
+            t = eng.tick(x[i], step=None if fresh[i] else lib.routes[r][int(index[i])], route=None if fresh[i] else r)
+            assert (t.route, t.index, t.done, int(t.branch)) == (r, j, done, b), i
+            # rounding: log p(x|A_m) reaches ~-1e5 here and the large-scale gain exp(other - own) turns the last-bit
+            # differences of a (J d, 3) x (3, 1) and a (J d, 3) x (3, B) product into up to ~1e-11 relative
+            assert torch.allclose(t.velocity, v[i], rtol=1e-10, atol=1e-12), i
+    counts = torch.bincount(branch.long(), minlength=4)
+    assert int(counts[int(Branch.AT_GOAL)]) > 0 and bool((dec.index > index.clamp_min(0)).any())  # steps complete
+    if mode in ("large", "full"):
+        assert int(counts[int(Branch.LARGE_SCALE)]) > 100
+    if mode in ("small", "full"):
+        assert int(counts[int(Branch.SMALL_SCALE)]) > 100
+
+
+def test_batched_tick_equals_the_per_row_reference_in_3d() -> None:
+    """The same check on a 3-D two-leg task (general d in the feature-major layout and the quadratic features)."""
+    corners = torch.tensor([[-1.0, 1.0, 0.5], [-1.0, 0.0, 0.2], [0.0, 0.0, 0.0]], dtype=F64)
+    syn = multi_step_demos(torch.Generator().manual_seed(0), n_demos=2, waypoints=corners, samples_per_step=60,
+                           timing_jitter=0.0, waypoint_jitter=0.01, noise=0.002)  # fmt: skip
+    lib = SkillLibrary.learn(syn.demos, FixedSegmenter([0.5])(syn.demos), generator=torch.Generator().manual_seed(1))
+    gen = torch.Generator().manual_seed(2)
+    n = 600
+    data = torch.cat([s.train_positions for s in lib.skills])
+    near = data[torch.randint(0, data.shape[0], (n // 2,), generator=gen)]
+    noise = 0.02 * torch.randn(n // 2, 3, generator=gen, dtype=F64)
+    x = torch.cat([torch.randn(n // 2, 3, generator=gen, dtype=F64), near + noise])
+    index = torch.randint(0, 2, (n,), generator=gen)
+    for mode in ("none", "large", "small", "full"):
+        eng = SkillEngine(lib, mode)
+        v, dec, branch = eng.step_batch(x, torch.zeros_like(index), index)
+        for i in range(n):
+            r, j, m, done, inside, u, b = _reference_tick(lib, eng.modulation, eng.arrival, x[i], 0, int(index[i]))
+            assert (j, m, done, inside, b) == (int(dec.index[i]), int(dec.step[i]), bool(dec.done[i]),
+                                               bool(dec.inside[i]), int(branch[i])), (mode, i)  # fmt: skip
+            assert torch.allclose(v[i], u, rtol=1e-9, atol=1e-12), (mode, i)
+        if mode == "full":
+            counts = torch.bincount(branch.long(), minlength=4)
+            assert int(counts[int(Branch.LARGE_SCALE)]) > 50 and int(counts[int(Branch.SMALL_SCALE)]) > 50
+
+
+def test_subtask_bank_equals_the_segmentation_density(mm3_all) -> None:
+    """SubtaskBank (the engine's densities) against ``Segmentation.log_density`` near the data, in a box and far
+    away; a Gaussian shared by two steps ties own and other exactly in both (such ties are common here)."""
+    lib = mm3_all[1]
+    eng = SkillEngine(lib, "full")
+    gen = torch.Generator().manual_seed(8)
+    x, route, index = _random_pairs(lib, 3000, gen)
+    x = torch.cat([x, 1e4 * torch.randn(50, 2, generator=gen, dtype=F64)])
+    ref = lib.segmentation.log_density(x)
+    got = eng.log_density(x)
+    assert got.shape == ref.shape
+    assert torch.allclose(got, ref, rtol=1e-12, atol=1e-11)
+    step = torch.randint(0, lib.n_steps, (x.shape[0],), generator=gen)
+    own, other = eng.own_other(x, step)
+    own_ref = ref.gather(1, step[:, None])[:, 0]
+    other_ref = lib.segmentation.other_log_density(x).gather(1, step[:, None])[:, 0]
+    ties = own_ref == other_ref
+    assert int(ties.sum()) > 10
+    assert torch.equal(own == other, ties)
+    assert torch.equal(own >= other, own_ref >= other_ref)
 
 
 @pytest.mark.skipif(not __import__("shutil").which("g++"), reason="torch.compile needs a C++ compiler")

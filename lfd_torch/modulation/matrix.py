@@ -37,34 +37,36 @@ class GoalDirection(NamedTuple):
     distance: Tensor
 
 
-def goal_direction(x: Tensor, attractor: Tensor) -> GoalDirection:
+def goal_direction(x: Tensor, attractor: Tensor, *, dim: int = -1) -> GoalDirection:
     """First column of W (eq. 11) and the distance to the goal.
 
     Args:
-        x: (..., d) positions.
-        attractor: (d,) goal g (broadcast against ``x``).
+        x: (..., d) positions (or the vector axis at ``dim``, e.g. feature-major (d, n) with ``dim=0``).
+        attractor: (d,) goal g (broadcast against ``x``; (d, 1) for feature-major points).
+        dim: the vector axis of ``x``.
 
     Returns:
         :class:`GoalDirection` (unit vector zero at x = g, no NaN).
     """
     e = x - attractor
-    r = torch.linalg.vector_norm(e, dim=-1)
+    r = torch.linalg.vector_norm(e, dim=dim) if dim in (-1, e.ndim - 1) else (e * e).sum(dim).sqrt()
     safe = torch.where(r > 0, r, torch.ones_like(r))
-    unit = torch.where((r > 0).unsqueeze(-1), e / safe.unsqueeze(-1), torch.zeros_like(e))
+    unit = torch.where((r > 0).unsqueeze(dim), e / safe.unsqueeze(dim), torch.zeros_like(e))
     return GoalDirection(unit, r)
 
 
-def radial_component(f: Tensor, unit: Tensor) -> Tensor:
+def radial_component(f: Tensor, unit: Tensor, *, dim: int = -1) -> Tensor:
     """c = e_g^T f = [W^-1 f]_1, the component of ``f`` along e_g (units/s).
 
     Args:
-        f: (..., d) velocities.
+        f: (..., d) velocities (vector axis ``dim``).
         unit: (..., d) e_g.
+        dim: the vector axis.
 
     Returns:
         (...) tensor.
     """
-    return (f * unit).sum(-1)
+    return (f * unit).sum(dim)
 
 
 def modulate(f: Tensor, unit: Tensor, d1: Tensor | float, d: Tensor | float) -> Tensor:

@@ -235,18 +235,27 @@ def modulated_velocity_unchecked(
     mode: str,
     lambda_limit: float,
     radial_floor: float,
+    *,
+    dim: int = -1,
 ) -> ModulationResult:
     """The computation of :func:`modulated_velocity` without its argument checks, for callers that validated the
     inputs once (a control loop's hot path): tensors of the batch shape (or broadcastable), a valid ``mode``,
-    ``lambda_limit`` and ``radial_floor``."""
-    batch = x.shape[:-1]
+    ``lambda_limit`` and ``radial_floor``.
+
+    ``dim`` is the vector axis of ``x``, ``f`` and the returned velocity: -1 for (..., d), 0 for feature-major
+    (d, n) batches (then ``attractor`` is (d, 1) and the batch shape is (n,)); reductions over a leading axis of a
+    feature-major tensor run over contiguous rows, several times faster on CPUs than over a trailing axis of size d.
+    """
+    dim = dim % x.ndim
+    batch = x.shape[:dim] + x.shape[dim + 1 :]
     branch = torch.full(batch, int(Branch.UNMODULATED), dtype=torch.int8, device=x.device)
     if mode == "none":
         return ModulationResult(f.clone(), branch)
 
-    unit, r = goal_direction(x, attractor)
-    c = radial_component(f, unit)
-    a = torch.maximum(c.abs(), radial_floor * torch.linalg.vector_norm(f, dim=-1))  # floored radial magnitude
+    unit, r = goal_direction(x, attractor, dim=dim)
+    c = radial_component(f, unit, dim=dim)
+    norm_f = torch.linalg.vector_norm(f, dim=dim) if dim == x.ndim - 1 else (f * f).sum(dim).sqrt()
+    a = torch.maximum(c.abs(), radial_floor * norm_f)  # floored radial magnitude
     out = f.clone()
 
     if mode in ("large", "full"):
@@ -257,16 +266,16 @@ def modulated_velocity_unchecked(
     if mode in ("small", "full"):
         uncertain = (h2 > h2_ref) & ~outside
         lam_ss = small_scale_factor(h2, h2_ref)
-        small = lam_ss.unsqueeze(-1) * f - a.unsqueeze(-1) * unit
-        out = torch.where(uncertain.unsqueeze(-1), small, out)
+        small = lam_ss.unsqueeze(dim) * f - a.unsqueeze(dim) * unit
+        out = torch.where(uncertain.unsqueeze(dim), small, out)
         branch = torch.where(uncertain, torch.full_like(branch, int(Branch.SMALL_SCALE)), branch)
     if mode in ("large", "full"):
-        large = -(a * s).unsqueeze(-1) * unit
-        out = torch.where(outside.unsqueeze(-1), large, out)
+        large = -(a * s).unsqueeze(dim) * unit
+        out = torch.where(outside.unsqueeze(dim), large, out)
         branch = torch.where(outside, torch.full_like(branch, int(Branch.LARGE_SCALE)), branch)
 
     at_goal = r == 0
-    out = torch.where(at_goal.unsqueeze(-1), torch.zeros_like(out), out)
+    out = torch.where(at_goal.unsqueeze(dim), torch.zeros_like(out), out)
     branch = torch.where(at_goal, torch.full_like(branch, int(Branch.AT_GOAL)), branch)
     return ModulationResult(out, branch)
 

@@ -79,27 +79,33 @@ class Arrival:
         object.__setattr__(self, "slow_radius", _nonneg(self.slow_radius, "slow_radius", allow_zero=False))
 
 
-def rate_floor(v: Tensor, e: Tensor, P: Tensor, rate: Tensor | float) -> Tensor:
+def rate_floor(v: Tensor, e: Tensor, P: Tensor | None, rate: Tensor | float, *, dim: int = -1,
+               Pe: Tensor | None = None) -> Tensor:  # fmt: skip
     """v + delta with the minimum-norm delta that gives dV/dt <= -rate V (module docstring).
 
     Args:
         v: (..., d) velocities (units/s).
         e: (..., d) x - g (units).
-        P: (..., d, d) or (d, d) Lyapunov matrices (symmetric positive definite).
+        P: (..., d, d) or (d, d) Lyapunov matrices (symmetric positive definite); may be None when ``Pe`` is given.
         rate: (...) or scalar rho (1/s); 0 leaves v unchanged.
+        dim: the vector axis of ``v``, ``e`` and ``Pe`` (0 for feature-major (d, n) batches).
+        Pe: optional precomputed P e, shaped like ``e`` (needed when ``dim`` is not the last axis).
 
     Returns:
         (..., d) corrected velocities; v itself where it already decreases V fast enough (and at e = 0).
     """
-    Pe = (P @ e.unsqueeze(-1)).squeeze(-1)
-    V = (e * Pe).sum(-1)
-    need = 2 * (Pe * v).sum(-1) + torch.as_tensor(rate, dtype=v.dtype, device=v.device) * V
-    norm2 = (Pe * Pe).sum(-1)
+    if Pe is None:
+        if P is None or dim not in (-1, e.ndim - 1):
+            raise InvalidArgumentError("Pe: pass P e for a vector axis other than the last, or P for the last")
+        Pe = (P @ e.unsqueeze(-1)).squeeze(-1)
+    V = (e * Pe).sum(dim)
+    need = 2 * (Pe * v).sum(dim) + torch.as_tensor(rate, dtype=v.dtype, device=v.device) * V
+    norm2 = (Pe * Pe).sum(dim)
     gain = torch.where((need > 0) & (norm2 > 0), need / (2 * norm2.clamp_min(torch.finfo(v.dtype).tiny)), 0.0)
-    return v - gain.unsqueeze(-1) * Pe
+    return v - gain.unsqueeze(dim) * Pe
 
 
-def speed_cap(u: Tensor, r: Tensor, v_hi: Tensor | float, slow_radius: float) -> Tensor:
+def speed_cap(u: Tensor, r: Tensor, v_hi: Tensor | float, slow_radius: float, *, dim: int = -1) -> Tensor:
     """u min(1, v_hi min(1, r / r_s) / ||u||) (module docstring).
 
     Args:
@@ -107,11 +113,12 @@ def speed_cap(u: Tensor, r: Tensor, v_hi: Tensor | float, slow_radius: float) ->
         r: (...) distances ||x - g_m|| (units).
         v_hi: (...) or scalar cap speed (units/s); inf: no cap.
         slow_radius: r_s (units, > 0).
+        dim: the vector axis of ``u`` (0 for feature-major (d, n) batches).
 
     Returns:
         (..., d) velocities with ||u|| <= v_hi min(1, r / r_s), same direction.
     """
-    speed = torch.linalg.vector_norm(u, dim=-1)
+    speed = torch.linalg.vector_norm(u, dim=dim) if dim in (-1, u.ndim - 1) else (u * u).sum(dim).sqrt()
     cap = torch.as_tensor(v_hi, dtype=u.dtype, device=u.device) * (r / slow_radius).clamp(max=1.0)
     alpha = torch.where(speed > cap, cap / speed.clamp_min(torch.finfo(u.dtype).tiny), 1.0)
-    return u * alpha.unsqueeze(-1)
+    return u * alpha.unsqueeze(dim)
