@@ -12,10 +12,14 @@ the skill figures show are recomputed from the stored libraries with the same se
   ``figures/<name>_violins.png`` and the summary ``tables/<name>_summary.{md,csv}`` (mean and std per method,
   train and test);
 * ``mnist``: ``mnist_strokes.png``, ``mnist_rollouts.png`` (Figs 10, 11) from ``libraries/mnist/digit_<d>.pt``
-  and ``tables/mnist.md``.
+  and ``tables/mnist.md``;
+* ``scooping``: ``scooping_{segmentation,starts,disturbed}.png`` (Figs 13-15) and the MuJoCo frame
+  ``scooping_frame.png`` from ``libraries/scooping/`` (the frame is skipped, with a message, where MuJoCo cannot
+  render offscreen), and ``tables/scooping.md`` from ``tables/scooping.parquet`` and the stored wall times.
 
 A missing or damaged stored file raises :class:`~lfd_torch.errors.StoreError` naming it (``make results`` writes
-them all). At the end, every file of ``results/figures`` that this run did not rewrite is listed.
+them all). At the end, every file of ``results/figures`` that this run did not rewrite is listed (exit status 1),
+except those this machine cannot draw (listed apart).
 
     python experiments/figures.py                      # everything (make figures)
     python experiments/figures.py --only lasa_benchmark mnist
@@ -43,8 +47,11 @@ from lfd_torch.segmentation import Segmentation  # noqa: E402
 from lfd_torch.store import PROVENANCE_COLUMNS, atomic_write, read_table  # noqa: E402
 from lfd_torch.viz.stored import load_config, load_demos, results_dir  # noqa: E402
 
-#: Figures other commands write into results/figures (not redrawn here).
-OTHER_FIGURES = ("scooping_",)
+#: Prefixes of figures other commands write into results/figures (not redrawn here): none, every figure is redrawn.
+OTHER_FIGURES: tuple[str, ...] = ()
+
+#: ``report(path)``: a file was written; ``report(path, skipped=why)``: it cannot be drawn on this machine.
+Report = Callable[..., None]
 
 
 def _table(results: Path, name: str) -> pd.DataFrame:
@@ -111,21 +118,47 @@ def mnist_figures(results: Path, report: Callable[[Path], None]) -> None:
     report(_markdown(mnist.summary(table), results / "tables" / "mnist.md", ".3g"))
 
 
-GROUPS: dict[str, Callable[[Path, Callable[[Path], None]], None]] = {
+def scooping_figures(results: Path, report: Report) -> None:
+    """Figs 13-15 and the MuJoCo frame from ``libraries/scooping/``, and ``tables/scooping.md``."""
+    from hydra.utils import instantiate
+
+    import scooping
+
+    where = results / "libraries" / "scooping"
+    cfg = load_config(where / "config.json")
+    name = str(cfg.experiment)
+    table = _table(results, name)
+    data = scooping.load_figure_data(where)
+    robot = instantiate(cfg.robot, _convert_="all")  # the MuJoCo scene of the run (drawn vessels, rendered frame)
+    drawn = scooping.draw_figures(data, robot, results / "figures", name, render=bool(cfg.render))
+    for path in drawn:
+        report(path)
+    frame = results / "figures" / f"{name}_frame.png"
+    if cfg.render and frame not in drawn:
+        report(frame, skipped="MuJoCo offscreen rendering unavailable here")
+    run = cfg.run
+    timings = {str(k): float(v) for k, v in run.wall_time_s}
+    md = scooping.markdown(table, cfg, int(run.n_steps), [int(s) for s in run.step_stage], timings)
+    report(atomic_write(results / "tables" / f"{name}.md", lambda p: p.write_text(md)))
+
+
+GROUPS: dict[str, Callable[[Path, Report], None]] = {
     "segment_lasa": segment_lasa_figures,
     "lasa_tasks": lasa_tasks_figures,
     "lasa_benchmark": lasa_benchmark_figures,
     "mnist": mnist_figures,
+    "scooping": scooping_figures,
 }
 
 
-def stale_figures(results: Path, since: float) -> list[Path]:
-    """Files of ``results/figures`` last written before ``since`` (time.time()), other commands' figures aside."""
+def stale_figures(results: Path, since: float, skipped: tuple[Path, ...] = ()) -> list[Path]:
+    """Files of ``results/figures`` last written before ``since`` (time.time()), other commands' figures and the
+    ``skipped`` ones (which this machine cannot draw) aside."""
     folder = results / "figures"
     if not folder.is_dir():
         return []
     return sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith(OTHER_FIGURES)
-                  and p.stat().st_mtime < since)  # fmt: skip
+                  and p.stat().st_mtime < since and p not in skipped)  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -135,19 +168,24 @@ def main(argv: list[str] | None = None) -> int:
     results = results_dir()
     start = time.time()
     written: list[Path] = []
+    not_drawn: list[Path] = []  # figures this machine cannot draw (reported with the reason)
 
-    def report(path: Path) -> None:
-        written.append(Path(path))
+    def report(path: Path, skipped: str | None = None) -> None:
         try:
             shown = Path(path).resolve().relative_to(results.parent.resolve())
         except ValueError:
             shown = Path(path)
+        if skipped:
+            not_drawn.append(Path(path))
+            print(f"[{time.time() - start:6.1f} s] {shown} not drawn: {skipped}", file=sys.stderr, flush=True)
+            return
+        written.append(Path(path))
         print(f"[{time.time() - start:6.1f} s] {shown}", flush=True)
 
     for name in args.only or list(GROUPS):
         GROUPS[name](results, report)
     print(f"{len(written)} files in {time.time() - start:.0f} s from {results / 'tables'} and {results / 'libraries'}")
-    stale = stale_figures(results, start) if not args.only else []
+    stale = stale_figures(results, start, tuple(not_drawn)) if not args.only else []
     for path in stale:
         print(f"not redrawn (no stored source): {path}", file=sys.stderr)
     return 1 if stale else 0

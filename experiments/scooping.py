@@ -12,7 +12,10 @@ MuJoCo Baxter (100 Hz engine on the tip position, DLS velocity map, impedance at
 
 One row per (mode, trial) with the success checks and the failure reason (``scooping.parquet``); a summary of success
 rates with Wilson 95 % intervals per stage, disturbance kind and label (``scooping.md``). Figures: 3-D segmentation
-(Fig. 13), trajectories from the 7 starts (Fig. 14), disturbed trajectories (Fig. 15), one rendered frame.
+(Fig. 13), trajectories from the 7 starts (Fig. 14), disturbed trajectories (Fig. 15), one rendered frame. The
+publish preset also stores what they draw (the smoothed demonstration, its segmentation, the drawn tip paths, the
+frame's joint state, the configuration with the run's wall times) under ``libraries/scooping/``, from which
+``experiments/figures.py`` redraws them and ``scooping.md`` with :func:`draw_figures` and :func:`markdown`.
 
     python experiments/scooping.py
     python experiments/scooping.py n_disturbed=60 figures=false
@@ -37,6 +40,7 @@ torch.set_num_threads(1)  # before any torch work; run() sets cfg.threads
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from lfd_torch.errors import StoreError
 from lfd_torch.modulation import Modulation
 from lfd_torch.robot import load_demonstration, scooping_demonstration
 from lfd_torch.robot.demonstration import STAGE_NAMES
@@ -49,8 +53,10 @@ from lfd_torch.robot.trials import (
     start_configurations,
     wilson_interval,
 )
+from lfd_torch.segmentation import Segmentation
 from lfd_torch.store import atomic_write, prepare_job, write_table
 from lfd_torch.utils import derive_seed
+from lfd_torch.viz.stored import load_demos, load_state, save_config, save_demos, save_state
 
 log = logging.getLogger(__name__)
 
@@ -136,6 +142,72 @@ def summary(table: pd.DataFrame) -> pd.DataFrame:
 
 
 # ---------------------------------------------------------------------------------------------- figures
+# What the figures draw is gathered once (figure_data), stored under libraries/scooping/ by the publish preset
+# (store_figure_data) and drawn by draw_figures, which experiments/figures.py calls on the stored copy.
+_DRAWN_MODES = ("full", "none")  # Fig. 15 rows
+_FRAME_TITLE = "MuJoCo frame: start configuration 0"
+
+
+def _path(tip: torch.Tensor, length: Any) -> torch.Tensor:
+    """(T, 3) float32 valid part of a logged tip path (m): what the figures draw, stored small."""
+    return tip[: int(length)].detach().cpu().to(torch.float32).clone()
+
+
+def figure_data(task: ScoopingTask, start_batches: dict[str, TrialBatch], dist_batches: dict[str, list[TrialBatch]],
+                table: pd.DataFrame, n_per_stage: int, q_frame: torch.Tensor) -> dict[str, Any]:
+    """Everything Figs 13-15 and the frame draw, as plain tensors, numbers and strings.
+
+    Returns:
+        ``demos`` the smoothed demonstration (1, T, 3) m; ``segmentation``; ``step_stage`` (M,) long;
+        ``attractors`` (M, 3) m; ``starts``: the mode-``full`` start runs (``tip`` list of (T_i, 3), ``success``)
+        or None; ``disturbed``: mode -> stage name -> up to ``n_per_stage`` drawn trials (``trial``, ``tip``,
+        ``success``, ``disturbance`` kind, ``sample`` where it starts, -1 none) or None; ``q_frame`` (7,) rad.
+    """
+    starts = None
+    if "full" in start_batches:
+        res = start_batches["full"]
+        starts = {"tip": [_path(res.tip[i], res.lengths[i]) for i in range(res.tip.shape[0])],
+                  "success": [bool(r["success"]) for r in res.rows]}  # fmt: skip
+    disturbed = None
+    if any(dist_batches.get(m) for m in _DRAWN_MODES):
+        disturbed = {}
+        for mode in (m for m in _DRAWN_MODES if dist_batches.get(m)):
+            flat = [(b, i) for b in dist_batches[mode] for i in range(b.tip.shape[0])]
+            sub = table[(table.method == mode) & (table.kind == "disturbed")].reset_index(drop=True)
+            disturbed[mode] = {}
+            for stage in STAGE_NAMES:
+                picks = sub.index[(sub.stage == stage) & (sub.disturbance != "none")][:n_per_stage]
+                drawn = []
+                for j in picks:
+                    b, i = flat[j]
+                    drawn.append({"trial": int(sub.trial[j]), "tip": _path(b.tip[i], b.lengths[i]),
+                                  "success": bool(sub.success[j]), "disturbance": str(sub.disturbance[j]),
+                                  "sample": int(b.disturbance_sample[i])})  # fmt: skip
+                disturbed[mode][stage] = drawn
+    return {"demos": task.demos, "segmentation": task.segmentation, "step_stage": task.step_stage.detach().cpu(),
+            "attractors": task.library.attractors.detach().cpu(), "starts": starts, "disturbed": disturbed,
+            "q_frame": q_frame.detach().cpu().double()}  # fmt: skip
+
+
+def store_figure_data(data: dict[str, Any], where: Path) -> list[Path]:
+    """``where``/{demos,segmentation,trials}.pt of :func:`figure_data` (checksummed)."""
+    where.mkdir(parents=True, exist_ok=True)
+    return [save_demos(data["demos"], where / "demos.pt", velocities=False, step_stage=data["step_stage"],
+                       attractors=data["attractors"]),
+            data["segmentation"].save(where / "segmentation.pt"),
+            save_state({k: data[k] for k in ("starts", "disturbed", "q_frame")}, where / "trials.pt")]  # fmt: skip
+
+
+def load_figure_data(where: Path) -> dict[str, Any]:
+    """:func:`figure_data` from the files of :func:`store_figure_data` (StoreError naming a missing or damaged one)."""
+    demos, extra = load_demos(where / "demos.pt")
+    seg_path = where / "segmentation.pt"
+    if not seg_path.is_file():
+        raise StoreError(f"stored file {seg_path} is missing (run the publish preset that writes it: make results)")
+    return {"demos": demos, "segmentation": Segmentation.load(seg_path), "step_stage": extra["step_stage"],
+            "attractors": extra["attractors"], **load_state(where / "trials.pt")}  # fmt: skip
+
+
 def _vessels(ax: Any, scene: Any) -> None:
     th = np.linspace(0, 2 * np.pi, 60)
     for v, colour in ((scene.can, "0.4"), (scene.cup, "tab:brown")):
@@ -167,16 +239,23 @@ def _axes3d(title: str) -> tuple[Any, Any]:
     return fig, ax
 
 
-def fig13_segmentation(task: ScoopingTask, scene: Any, path: Path) -> Path:
-    fig, ax = _axes3d(f"Fig. 13: demonstration segmented into {task.n_steps} steps (BP-GM-HMM, no prior)")
-    x = task.demos.positions[0, : int(task.demos.lengths[0])].numpy()
-    lab = task.segmentation.labels[0][: x.shape[0]].numpy()
+def _demo_path(data: dict[str, Any]) -> np.ndarray:
+    demos = data["demos"]
+    return demos.positions[0, : int(demos.lengths[0])].numpy()
+
+
+def fig13_segmentation(data: dict[str, Any], scene: Any, path: Path) -> Path:
+    """Fig. 13: the smoothed demonstration coloured by BP-GM-HMM step, with the attractors."""
+    n_steps = int(data["step_stage"].shape[0])
+    fig, ax = _axes3d(f"Fig. 13: demonstration segmented into {n_steps} steps (BP-GM-HMM, no prior)")
+    x = _demo_path(data)
+    lab = data["segmentation"].labels[0][: x.shape[0]].numpy()
     cmap = __import__("matplotlib").colormaps["tab10"]
-    for m in range(task.n_steps):
+    for m in range(n_steps):
         sel = lab == m
         ax.scatter(x[sel, 0], x[sel, 1], x[sel, 2], s=2, color=cmap(m),
-                   label=f"step {m} ({STAGE_NAMES[int(task.step_stage[m])]})")  # fmt: skip
-    g = task.library.attractors.numpy()
+                   label=f"step {m} ({STAGE_NAMES[int(data['step_stage'][m])]})")  # fmt: skip
+    g = data["attractors"].numpy()
     ax.scatter(g[:, 0], g[:, 1], g[:, 2], marker="*", s=80, color="k", label="attractors $g_m$")
     _vessels(ax, scene)
     ax.legend(fontsize=7, loc="upper left")
@@ -194,14 +273,14 @@ def _save(fig: Any, path: Path) -> Path:
     return out
 
 
-def fig14_starts(task: ScoopingTask, scene: Any, batches: dict[str, TrialBatch], path: Path) -> Path:
+def fig14_starts(data: dict[str, Any], scene: Any, path: Path) -> Path:
+    """Fig. 14: the mode-``full`` runs from the start configurations beside the demonstration."""
     fig, ax = _axes3d("Fig. 14: generalisation from 7 start configurations (MuJoCo, mode full)")
-    x = task.demos.positions[0, : int(task.demos.lengths[0])].numpy()
+    x = _demo_path(data)
     ax.plot(x[:, 0], x[:, 1], x[:, 2], color="k", lw=1.5, ls="--", label="demonstration")
-    res = batches["full"]
-    for i in range(res.tip.shape[0]):
-        p = res.tip[i, : int(res.lengths[i])].numpy()
-        ok = res.rows[i]["success"]
+    starts = data["starts"]
+    for i, (tip, ok) in enumerate(zip(starts["tip"], starts["success"])):
+        p = tip.numpy()
         ax.plot(p[:, 0], p[:, 1], p[:, 2], lw=1.0, color="tab:blue" if ok else "tab:red",
                 label=("success" if ok else "failure") if i == 0 else None)  # fmt: skip
         ax.scatter(*p[0], color="tab:green", s=15)
@@ -210,33 +289,29 @@ def fig14_starts(task: ScoopingTask, scene: Any, batches: dict[str, TrialBatch],
     return _save(fig, path)
 
 
-def fig15_disturbed(task: ScoopingTask, scene: Any, batches: dict[str, list[TrialBatch]], rows: pd.DataFrame,
-                    n_per_stage: int, path: Path) -> Path:
+def fig15_disturbed(data: dict[str, Any], scene: Any, path: Path) -> Path:
+    """Fig. 15: per drawn mode and stage, the stored disturbed trials with where each disturbance starts."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    modes = [m for m in ("full", "none") if m in batches]
+    drawn = data["disturbed"]
+    modes = [m for m in _DRAWN_MODES if m in drawn]
     fig = plt.figure(figsize=(5.0 * len(STAGE_NAMES), 4.4 * len(modes)))
-    x = task.demos.positions[0, : int(task.demos.lengths[0])].numpy()
+    x = _demo_path(data)
     for r, mode in enumerate(modes):
-        flat = [(b, i) for b in batches[mode] for i in range(b.tip.shape[0])]
-        sub = rows[(rows.method == mode) & (rows.kind == "disturbed")].reset_index(drop=True)
         for c, stage in enumerate(STAGE_NAMES):
             ax = fig.add_subplot(len(modes), len(STAGE_NAMES), r * len(STAGE_NAMES) + c + 1, projection="3d")
             ax.set_title(f"{mode}: disturbed in the {stage} stage", fontsize=9)
             ax.view_init(elev=28, azim=-150)
             ax.plot(x[:, 0], x[:, 1], x[:, 2], color="k", lw=1.2, ls="--")
-            picks = sub.index[(sub.stage == stage) & (sub.disturbance != "none")][:n_per_stage]
-            for j in picks:
-                b, i = flat[j]
-                p = b.tip[i, : int(b.lengths[i])].numpy()
-                ok = bool(sub.success[j])
-                ax.plot(p[:, 0], p[:, 1], p[:, 2], lw=0.9, color="tab:blue" if ok else "tab:red")
-                k = int(b.disturbance_sample[i])
+            for trial in drawn[mode][stage]:
+                p = trial["tip"].numpy()
+                ax.plot(p[:, 0], p[:, 1], p[:, 2], lw=0.9, color="tab:blue" if trial["success"] else "tab:red")
+                k = int(trial["sample"])
                 if k >= 0:
-                    ax.scatter(*p[k], marker="x", color="tab:orange" if sub.disturbance[j] == "force" else "m", s=25)
+                    ax.scatter(*p[k], marker="x", color="tab:orange" if trial["disturbance"] == "force" else "m", s=25)
             _vessels(ax, scene)
     fig.suptitle("Fig. 15: disturbed trials (orange x: a force pulse starts, magenta x: a position jump lands; "
                  "red: failed)", fontsize=10)  # fmt: skip
@@ -289,8 +364,44 @@ def render_frame(robot: Any, q: torch.Tensor, path: Path) -> Path | None:
     fig = plt.figure(figsize=(6.4, 4.8))
     plt.imshow(img)
     plt.axis("off")
-    plt.title("MuJoCo frame: start configuration 0", fontsize=9)
+    plt.title(_FRAME_TITLE, fontsize=9)
     return _save(fig, path)
+
+
+def draw_figures(data: dict[str, Any], robot: Any, fig_dir: Path, name: str, *, render: bool) -> list[Path]:
+    """Figs 13-15 and (``render``) the MuJoCo frame of :func:`figure_data` as ``fig_dir``/``name``_*.png; the
+    figures whose data is absent (no ``full`` mode, no disturbed trials) and a frame that cannot be rendered are
+    skipped."""
+    scene = robot.plant.scene
+    written = [fig13_segmentation(data, scene, fig_dir / f"{name}_segmentation.png")]
+    if data["starts"] is not None:
+        written.append(fig14_starts(data, scene, fig_dir / f"{name}_starts.png"))
+    if data["disturbed"] is not None:
+        written.append(fig15_disturbed(data, scene, fig_dir / f"{name}_disturbed.png"))
+    if render:
+        frame = render_frame(robot, data["q_frame"], fig_dir / f"{name}_frame.png")
+        if frame is not None:
+            written.append(frame)
+    return written
+
+
+def markdown(table: pd.DataFrame, cfg: Any, n_steps: int, step_stage: list[int], timings: dict[str, float]) -> str:
+    """``summary.md`` / ``scooping.md``: a header line (seeds, steps found, wall time per mode in s) and the
+    :func:`summary` of ``table``."""
+    head = (f"Baxter sugar scooping (experiments/scooping.py, seed {cfg.seed}, demo_seed {cfg.demo_seed}): "
+            f"{n_steps} steps found; stages of the steps {list(step_stage)}; "
+            f"wall time per mode: " + ", ".join(f"{k} {v:.0f}" for k, v in timings.items()) + "\n\n")  # fmt: skip
+    return head + summary(table).to_markdown(index=False, floatfmt=".3g") + "\n"
+
+
+def store_config(cfg: DictConfig, timings: dict[str, float], n_steps: int, step_stage: list[int],
+                 where: Path) -> Path:
+    """``where``/config.json: the run's configuration and, under ``run``, what the markdown header reports:
+    ``wall_time_s`` as [name, s] pairs in the header's order (the JSON keys are sorted), ``n_steps``, ``step_stage``."""
+    data = OmegaConf.to_container(cfg, resolve=True)
+    data["run"] = {"wall_time_s": [[k, float(v)] for k, v in timings.items()], "n_steps": int(n_steps),
+                   "step_stage": [int(s) for s in step_stage]}  # fmt: skip
+    return save_config(data, where / "config.json", drop=("hydra", "paths", "out_dir"))
 
 
 # ---------------------------------------------------------------------------------------------- run
@@ -333,28 +444,20 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     table = pd.DataFrame(rows)
     summ = summary(table)
     written: list[Path] = [write_table(table, out_dir / "results.parquet", manifest=manifest)]
-    head = (f"Baxter sugar scooping (experiments/scooping.py, seed {cfg.seed}, demo_seed {cfg.demo_seed}): "
-            f"{task.n_steps} steps found; stages of the steps {task.step_stage.tolist()}; "
-            f"wall time per mode: " + ", ".join(f"{k} {v:.0f}" for k, v in timings.items()) + "\n\n")  # fmt: skip
-    md = head + summ.to_markdown(index=False, floatfmt=".3g")
-    written.append(atomic_write(out_dir / "summary.md", lambda p: p.write_text(md + "\n")))
+    md = markdown(table, cfg, task.n_steps, task.step_stage.tolist(), timings)
+    written.append(atomic_write(out_dir / "summary.md", lambda p: p.write_text(md)))
     if cfg.publish:
         tables = Path(cfg.paths.tables)
         written.append(write_table(table, tables / f"{cfg.experiment}.parquet", manifest=manifest))
-        written.append(atomic_write(tables / f"{cfg.experiment}.md", lambda p: p.write_text(md + "\n")))
+        written.append(atomic_write(tables / f"{cfg.experiment}.md", lambda p: p.write_text(md)))
     if cfg.figures or cfg.publish:
+        data = figure_data(task, start_batches, dist_batches, table, int(cfg.n_figure_trials), q_starts[0])
+        if cfg.publish:
+            where = Path(cfg.paths.libraries) / str(cfg.experiment)
+            written.extend(store_figure_data(data, where))
+            written.append(store_config(cfg, timings, task.n_steps, task.step_stage.tolist(), where))
         fig_dir = Path(cfg.paths.figures) if cfg.publish else out_dir / "figures"
-        scene = robot.plant.scene
-        written.append(fig13_segmentation(task, scene, fig_dir / f"{cfg.experiment}_segmentation.png"))
-        if "full" in start_batches:
-            written.append(fig14_starts(task, scene, start_batches, fig_dir / f"{cfg.experiment}_starts.png"))
-        if plan:
-            written.append(fig15_disturbed(task, scene, dist_batches, table, int(cfg.n_figure_trials),
-                                           fig_dir / f"{cfg.experiment}_disturbed.png"))  # fmt: skip
-        if cfg.render:
-            frame = render_frame(robot, q_starts[0], fig_dir / f"{cfg.experiment}_frame.png")
-            if frame is not None:
-                written.append(frame)
+        written.extend(draw_figures(data, robot, fig_dir, str(cfg.experiment), render=bool(cfg.render)))
     log.info("summary:\n%s", md)
     return {"table": table, "summary": summ, "task": task, "timings": timings, "written": written}
 

@@ -1,12 +1,13 @@
 """experiments/figures.py redraws the published figures from stored tables and libraries, without fitting.
 
-The fixture publishes tiny runs of the four experiments into a temporary project root (``paths.root``), which
-writes their tables, libraries and figures; figures.py then runs there (``LFD_ROOT``) with every fitter replaced
-by one that raises, and must rewrite every figure byte for byte.
+The fixture publishes tiny runs of the five experiments into a temporary project root (``paths.root``), which
+writes their tables, libraries and figures; figures.py then runs there (``LFD_ROOT``) with every fitter and the
+scooping simulation replaced by ones that raise, and must rewrite every figure byte for byte.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import os
 import re
@@ -30,8 +31,10 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import figures  # noqa: E402
 
-#: Names of the fitting entry points; figures.py must call none of them.
-FITTERS = ("fit_lpvds", "fit_seds", "segment", "fit_gmm", "fit_pcgmm")
+#: Names of the fitting and simulation entry points; figures.py must call none of them.
+FITTERS = ("fit_lpvds", "fit_seds", "segment", "fit_gmm", "fit_pcgmm", "learn_scooping", "run_trials", "solve_ik",
+           "start_configurations")  # fmt: skip
+EXPERIMENTS = ("lasa_tasks", "lasa_benchmark", "mnist", "segment_lasa", "scooping", "figures")
 
 
 def _compose(name: str, overrides: list[str]):
@@ -45,6 +48,7 @@ def published(tmp_path_factory) -> Path:
     import lasa_benchmark
     import lasa_tasks
     import mnist
+    import scooping
     import segment_lasa
     from test_mnist import one, seven, write_set
 
@@ -63,6 +67,10 @@ def published(tmp_path_factory) -> Path:
     mnist.run(_compose("mnist", common + [
         "digits=[7]", "data.n_demos=2", "data.pool=null", "data.n_points=120", f"data.directory={root / 'mnist'}",
         "n_perturbed=1", "budget_s=15", "n_resample=40", f"+out_dir={root / 'job_mnist'}"]))  # fmt: skip
+    if importlib.util.find_spec("mujoco") is not None:  # 1 s trials: each mode's runs stop early, some disturbed
+        scooping.run(_compose("scooping", common + [
+            "n_disturbed=6", "starts.n=2", "budget_s=1.0", "n_figure_trials=1", "workers=1",
+            f"+out_dir={root / 'job_scoop'}"]))  # fmt: skip
     return root
 
 
@@ -76,8 +84,7 @@ def _forbid_fitting(monkeypatch) -> None:
     from lfd_torch.skills import SkillLibrary
 
     for name, module in list(sys.modules.items()):
-        if module is None or not (name.startswith("lfd_torch") or name in ("lasa_tasks", "lasa_benchmark", "mnist",
-                                                                            "segment_lasa", "figures")):  # fmt: skip
+        if module is None or not (name.startswith("lfd_torch") or name in EXPERIMENTS):
             continue
         for attr in FITTERS:
             if callable(getattr(module, attr, None)):
@@ -85,6 +92,10 @@ def _forbid_fitting(monkeypatch) -> None:
     monkeypatch.setattr(SkillLibrary, "learn", classmethod(_raise))
     for cls in (BPGMHMMSegmenter, FixedSegmenter, NoSegmenter, PCGMMFitter):
         monkeypatch.setattr(cls, "__call__", _raise)
+    if "lfd_torch.robot" in sys.modules:  # no MuJoCo physics step either (the frame is one mj_forward)
+        from lfd_torch.robot import BaxterPlant
+
+        monkeypatch.setattr(BaxterPlant, "step", _raise)
 
 
 def _snapshot(results: Path) -> dict[str, bytes]:
@@ -99,9 +110,14 @@ def test_figures_redraws_every_published_file_identically_without_fitting(publis
     assert {"figures/segment_lasa_synthetic_3d.png", "figures/lasa_tasks_Multi_Models_1_pushes.png",
             "figures/lasa_benchmark_violins.png", "figures/mnist_rollouts.png",
             "tables/lasa_benchmark_summary.csv"} <= set(before)  # fmt: skip
+    scooped = (results / "tables" / "scooping.parquet").is_file()
+    if scooped:
+        assert {f"figures/scooping_{n}.png" for n in ("segmentation", "starts", "disturbed")} <= set(before)
+        assert "tables/scooping.md" in before
     shutil.rmtree(results / "figures")
-    for name in ("lasa_benchmark_summary.md", "lasa_benchmark_summary.csv", "lasa_tasks.md", "mnist.md"):
-        (results / "tables" / name).unlink()
+    for name in ("lasa_benchmark_summary.md", "lasa_benchmark_summary.csv", "lasa_tasks.md", "mnist.md",
+                 "scooping.md"):  # fmt: skip
+        (results / "tables" / name).unlink(missing_ok=True)
     _forbid_fitting(monkeypatch)
     import lasa_tasks
 
@@ -114,8 +130,14 @@ def test_figures_redraws_every_published_file_identically_without_fitting(publis
                 lambda: lfd_torch.ds.fit_seds(train), lambda: NoSegmenter()(train)):  # fmt: skip
         with pytest.raises(AssertionError, match="fitted a model"):
             fit()
+    if scooped:
+        import scooping
+
+        for call in (scooping.learn_scooping, scooping.run_trials, scooping.start_configurations):
+            with pytest.raises(AssertionError, match="fitted a model"):
+                call()
     monkeypatch.setenv("LFD_ROOT", str(published))
-    assert figures.main([]) == 0
+    assert figures.main([] if scooped else ["--only", "segment_lasa", "lasa_tasks", "lasa_benchmark", "mnist"]) == 0
     after = _snapshot(results)
     assert set(after) == set(before)
     changed = [name for name in before if after[name] != before[name]]
@@ -127,14 +149,30 @@ def test_figures_redraws_every_published_file_identically_without_fitting(publis
 def test_a_figure_without_stored_source_is_listed(tmp_path):
     folder = tmp_path / "results" / "figures"
     folder.mkdir(parents=True)
-    for name in ("hand_made.png", "scooping_demo.png", "redrawn.png"):
+    for name in ("hand_made.png", "scooping_demo.png", "scooping_frame.png", "redrawn.png"):
         (folder / name).write_bytes(b"png")
     old = time.time() - 100
-    for name in ("hand_made.png", "scooping_demo.png"):
+    for name in ("hand_made.png", "scooping_demo.png", "scooping_frame.png"):
         os.utime(folder / name, (old, old))
-    # figures of other commands (scooping_*) are not figures.py's to redraw
-    assert figures.stale_figures(tmp_path / "results", old + 50) == [folder / "hand_made.png"]
+    # every figure is figures.py's to redraw; one this machine cannot draw (reported as such) is not stale
+    stale = figures.stale_figures(tmp_path / "results", old + 50, (folder / "scooping_frame.png",))
+    assert stale == [folder / "hand_made.png", folder / "scooping_demo.png"]
+    assert figures.stale_figures(tmp_path / "results", old + 50)[-1] == folder / "scooping_frame.png"
     assert figures.stale_figures(tmp_path / "results", old - 50) == []
+
+
+def _middle_of_largest_record(raw: bytearray) -> int:
+    """Offset of the middle byte of the largest tensor record of a torch.save zip (the middle of the file if not a
+    zip): the middle of the file itself may fall in a zip header's padding, which readers ignore."""
+    import io
+    import struct
+    import zipfile
+
+    if not zipfile.is_zipfile(io.BytesIO(bytes(raw))):
+        return len(raw) // 2
+    info = max(zipfile.ZipFile(io.BytesIO(bytes(raw))).infolist(), key=lambda i: i.compress_size)
+    name_len, extra_len = struct.unpack("<HH", raw[info.header_offset + 26 : info.header_offset + 30])
+    return info.header_offset + 30 + name_len + extra_len + info.compress_size // 2
 
 
 @pytest.mark.parametrize(
@@ -148,10 +186,18 @@ def test_a_figure_without_stored_source_is_listed(tmp_path):
         ("libraries/lasa_tasks/Multi_Models_1_steps2/step_1.pt", "flip"),
         ("libraries/mnist/digit_7.pt", "flip"),
         ("tables/lasa_benchmark.parquet", "truncate"),
+        ("libraries/scooping/trials.pt", "flip"),
+        ("libraries/scooping/demos.pt", "flip"),
+        ("libraries/scooping/segmentation.pt", "truncate"),
+        ("libraries/scooping/segmentation.pt", "delete"),
+        ("libraries/scooping/config.json", "flip"),
+        ("tables/scooping.parquet", "delete"),
     ],
 )
 def test_missing_or_damaged_stored_file_raises_store_error_naming_it(published, monkeypatch, tmp_path, relative,
                                                                      damage):  # fmt: skip
+    if "scooping" in relative and not (published / "results" / relative).is_file():
+        pytest.skip("no MuJoCo: no scooping run")
     copy = tmp_path / "project"
     shutil.copytree(published / "results", copy / "results")
     path = copy / "results" / relative
@@ -160,13 +206,32 @@ def test_missing_or_damaged_stored_file_raises_store_error_naming_it(published, 
         path.unlink()
     elif damage == "truncate":
         path.write_bytes(bytes(raw[: len(raw) // 2]))
-    else:  # one flipped bit in the middle: a byte of a stored tensor or number
-        raw[len(raw) // 2] ^= 0x04
+    else:  # one flipped bit in the middle of the largest stored tensor (torch.save zip) or of the JSON text
+        raw[_middle_of_largest_record(raw)] ^= 0x04
         path.write_bytes(bytes(raw))
     monkeypatch.setenv("LFD_ROOT", str(copy))
-    group = relative.split("/")[1] if relative.startswith("libraries") else "lasa_benchmark"
+    group = relative.split("/")[1] if relative.startswith("libraries") else relative.split("/")[1].split(".")[0]
     with pytest.raises(StoreError, match=re.escape(path.name)):
         figures.main(["--only", group])
+
+
+def test_scooping_frame_without_offscreen_rendering_is_reported_not_redrawn(published, monkeypatch, tmp_path,
+                                                                            capsys):  # fmt: skip
+    if not (published / "results" / "libraries" / "scooping").is_dir():
+        pytest.skip("no MuJoCo: no scooping run")
+    copy = tmp_path / "project"
+    shutil.copytree(published / "results", copy / "results")
+    frame = copy / "results" / "figures" / "scooping_frame.png"
+    kept = frame.read_bytes() if frame.is_file() else None
+    start = time.time()
+    monkeypatch.setenv("LFD_ROOT", str(copy))
+    monkeypatch.setenv("LFD_MUJOCO_GL", "no_such_gl_backend")  # mujoco refuses to import: no GL context
+    assert figures.main(["--only", "scooping"]) == 0
+    err = capsys.readouterr().err
+    assert "scooping_frame.png not drawn: MuJoCo offscreen rendering unavailable" in err
+    assert (frame.read_bytes() if frame.is_file() else None) == kept
+    for name in ("segmentation", "starts", "disturbed"):
+        assert (copy / "results" / "figures" / f"scooping_{name}.png").stat().st_mtime >= start - 0.05
 
 
 def test_stored_demos_round_trip(tmp_path, generator):
@@ -220,7 +285,7 @@ def test_make_figures_reads_stored_files_and_make_results_recomputes():
     assert recipe("figures") == ["$(BIN)/python experiments/figures.py"]
     steps = " ".join(recipe("results"))
     for preset in ("segment_lasa_publish", "lasa_tasks_publish", "lasa_benchmark_publish", "lasa_benchmark_paper",
-                   "mnist.py publish=true", "report_benchmark.py"):  # fmt: skip
+                   "mnist.py publish=true", "report_benchmark.py", "scooping_publish"):  # fmt: skip
         assert preset in steps
     assert recipe("results")[-1] == "$(BIN)/python experiments/figures.py"
     assert recipe("run") == ["$(BIN)/python experiments/lasa_benchmark.py"]
