@@ -20,6 +20,7 @@ __all__ = [
     "StoreError",
     "PlotError",
     "InvalidGMMError",
+    "InvalidIndexError",
 ]
 
 
@@ -29,6 +30,10 @@ class LfdError(Exception):
 
 class InvalidArgumentError(LfdError, ValueError):
     """An argument outside its valid range or of the wrong kind (a tolerance < 0, a non-callable field, ...)."""
+
+
+class InvalidIndexError(InvalidArgumentError, IndexError):
+    """An index (of a demonstration, a step, a route) outside its valid range or of the wrong type."""
 
 
 class InvalidDemoError(InvalidArgumentError):

@@ -56,6 +56,7 @@ import torch
 from torch import Tensor
 
 from lfd_torch.data.demos import MIN_SAMPLES, Demos
+from lfd_torch.utils import check_cost, check_float
 from lfd_torch.errors import (
     InvalidArgumentError,
     NonFiniteError,
@@ -80,6 +81,9 @@ DEFAULT_POSITION_TOL = 1e-3
 
 DEFAULT_VELOCITY_TOL = 1e-3
 """Default ``velocity_tol`` in data units per second."""
+
+MAX_STORED_VALUES = 5e8
+"""Bound on 2 (n_steps + 1) B d, the stored positions and velocities of one rollout (4 GB in float64)."""
 
 Field = Callable[[Tensor], Tensor]
 Hook = Callable[[int, Tensor, Tensor], "Tensor | None"]
@@ -133,10 +137,25 @@ class Disturbance:
             raw = raw.reshape(-1).tolist()
         elif isinstance(raw, (int, np.integer)):
             raw = [raw]
+        if isinstance(raw, (str, bytes)) or not isinstance(raw, Iterable):
+            raise InvalidArgumentError(f"disturbance steps must be an int or a sequence of ints >= 0, got {raw!r}")
         raw = list(raw)
-        if not raw or not all(isinstance(s, (int, np.integer)) and not isinstance(s, bool) for s in raw):
-            raise InvalidArgumentError(f"disturbance steps must be a non-empty set of integers, got {self.steps!r}")
+        if not raw or not all(isinstance(s, (int, np.integer)) and not isinstance(s, bool) and s >= 0 for s in raw):
+            raise InvalidArgumentError(f"disturbance steps must be a non-empty set of integers >= 0, got {self.steps!r}")
         object.__setattr__(self, "steps", tuple(sorted({int(s) for s in raw})))
+        value = self.value
+        if not isinstance(value, Tensor):
+            try:
+                arr = np.asarray(value)
+            except (TypeError, ValueError) as exc:
+                raise InvalidArgumentError(f"disturbance value must be a (d,) or (B, d) array, got {value!r}") from exc
+            if arr.dtype.kind not in "fiu":
+                raise InvalidArgumentError(f"disturbance value must hold real numbers, got {value!r}")
+            value = torch.as_tensor(arr)
+        if value.is_complex() or value.dtype == torch.bool or value.ndim not in (1, 2):
+            raise InvalidArgumentError(f"disturbance value must be a real (d,) or (B, d) array, got {value.dtype} of "
+                                       f"shape {tuple(value.shape)}")  # fmt: skip
+        # finiteness and the shape against (B, d) are checked by rollout(), which knows B and d
 
 
 @dataclass(frozen=True, eq=False)
@@ -294,6 +313,9 @@ def _schedule(
         return plan
     if isinstance(disturbances, Disturbance):
         disturbances = [disturbances]
+    if isinstance(disturbances, (str, bytes)) or not isinstance(disturbances, Iterable):
+        raise InvalidArgumentError(f"disturbances must be a Disturbance, an iterable of them or None, got "
+                                   f"{type(disturbances).__name__}")  # fmt: skip
     for i, dist in enumerate(disturbances):
         if not isinstance(dist, Disturbance):
             raise InvalidArgumentError(f"disturbances[{i}] is a {type(dist).__name__}, not a Disturbance")
@@ -365,7 +387,8 @@ def rollout(
             still integrating, which shrinks as rows stop.
         x0: (B, d) start states, floating point.
         dt: time step, seconds (> 0).
-        n_steps: number of integration steps (>= 1); T = n_steps + 1 samples are stored.
+        n_steps: number of integration steps (>= 1); T = n_steps + 1 samples are stored, and 2 T B d (positions
+            and velocities) must not exceed :data:`MAX_STORED_VALUES` (5e8).
         method: ``"euler"`` or ``"rk4"``.
         attractor: (d,) goal g. Required for the stopping rule; None integrates every row for n_steps steps.
         position_tol: stop when ``||x - g|| < position_tol`` (data units; default :data:`DEFAULT_POSITION_TOL`).
@@ -420,17 +443,13 @@ def rollout(
     if not bool(torch.isfinite(x0).all()):
         b = int(torch.nonzero(~torch.isfinite(x0).all(-1))[0])
         raise NonFiniteError(f"x0 contains NaN or Inf (start {b})", b)
-    try:
-        dt = float(dt)
-    except (TypeError, ValueError):
-        raise NonIncreasingTimeError(f"dt must be a positive number, got {dt!r}") from None
-    if not (math.isfinite(dt) and dt > 0):
-        raise NonIncreasingTimeError(f"dt must be a positive finite number of seconds, got {dt}")
+    dt = check_float(dt, "dt (seconds)", low=0.0, low_open=True, error=NonIncreasingTimeError)
     if isinstance(n_steps, bool) or not isinstance(n_steps, (int, np.integer)):
         raise InvalidArgumentError(f"n_steps must be an int, got {n_steps!r}")
     n_steps = int(n_steps)
     if n_steps < 1:
         raise TooFewSamplesError(f"n_steps must be >= 1, got {n_steps}")
+    check_cost("n_steps", 2.0 * (n_steps + 1) * B * d, MAX_STORED_VALUES, "stored positions and velocities")
     method = _parse_enum(IntegrationMethod, method, "integration method")
     if isinstance(check_every, bool) or not isinstance(check_every, (int, np.integer)) or check_every < 1:
         raise InvalidArgumentError(f"check_every must be an int >= 1, got {check_every!r}")
@@ -451,13 +470,19 @@ def rollout(
             )
         p_tol = v_tol = 0.0
     else:
-        g = torch.as_tensor(
-            attractor.detach() if isinstance(attractor, Tensor) else np.asarray(attractor), device=x0.device
-        ).to(x0.dtype)
+        try:
+            g = torch.as_tensor(
+                attractor.detach() if isinstance(attractor, Tensor) else np.asarray(attractor), device=x0.device
+            )
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise ShapeMismatchError(f"attractor must be a ({d},) tensor, got {attractor!r}") from exc
+        if g.is_complex() or not (g.is_floating_point() or g.dtype in (torch.int32, torch.int64)):
+            raise ShapeMismatchError(f"attractor must hold real numbers, got {g.dtype}")
+        g = g.to(x0.dtype)
         if g.shape != (d,):
             raise ShapeMismatchError(f"attractor must have shape ({d},), got {tuple(g.shape)}")
         if not bool(torch.isfinite(g).all()):
-            raise NonFiniteError("attractor is not finite")
+            raise NonFiniteError("attractor contains NaN or Inf")
         p_tol = _check_tol(position_tol, DEFAULT_POSITION_TOL, "position_tol")
         v_tol = _check_tol(velocity_tol, DEFAULT_VELOCITY_TOL, "velocity_tol")
     plan = _schedule(disturbances, B, d, n_steps, x0)
@@ -559,7 +584,8 @@ def _integrate(
         if first is not None:
             step, b, name = first
             raise NonFiniteError(
-                f"rollout diverged: non-finite {name} at step {step} (t = {step * dt:g} s) of start {b}", b
+                f"rollout diverged: non-finite {name} at step {step} (t = {step * dt:g} s) of start {b} (check the "
+                "field and dt)", b
             )
 
     def fill_tail(k_from: int, rows: Tensor | None, states: Tensor) -> None:

@@ -23,8 +23,9 @@ import torch
 from torch import Tensor
 
 from lfd_torch.data.finite_difference import finite_difference
-from lfd_torch.utils import resolve_device, resolve_dtype
+from lfd_torch.utils import FLOAT_DTYPES, check_float, resolve_device, resolve_dtype
 from lfd_torch.errors import (
+    InvalidIndexError,
     NonFiniteError,
     NonIncreasingTimeError,
     ShapeMismatchError,
@@ -38,10 +39,24 @@ MIN_SAMPLES = 3
 Index = int | slice | Sequence[int] | Tensor | np.ndarray
 
 
-def _as_tensor(value: Any, dtype: torch.dtype | None, device: torch.device | str | None) -> Tensor:
-    if isinstance(value, Tensor):
-        return value.to(dtype=dtype or value.dtype, device=device or value.device)
-    return torch.tensor(np.asarray(value), dtype=dtype, device=device)
+def _as_tensor(value: Any, dtype: torch.dtype | None, device: torch.device | str | None, name: str = "value",
+               index: int | None = None) -> Tensor:  # fmt: skip
+    """A real-valued tensor from a tensor or an array-like (int and bool are cast to ``dtype``; complex, strings
+    and objects are rejected)."""
+    if not isinstance(value, Tensor):
+        try:
+            arr = np.asarray(value)
+        except (TypeError, ValueError) as exc:  # ragged nested lists
+            raise ShapeMismatchError(f"{name} is not a rectangular array: {exc}", index) from exc
+        if arr.dtype.kind not in "fiub":
+            raise ShapeMismatchError(f"{name} must hold real numbers, got an array of {arr.dtype}", index)
+        value = torch.tensor(arr)
+    if value.is_complex() or not (value.is_floating_point() or value.dtype in _INT_DTYPES):
+        raise ShapeMismatchError(f"{name} must hold real numbers, got {value.dtype}", index)
+    return value.to(dtype=dtype or value.dtype, device=device or value.device)
+
+
+_INT_DTYPES = (torch.bool, torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64)
 
 
 def _pad_edge(rows: list[Tensor], T: int) -> Tensor:
@@ -70,6 +85,14 @@ class Demos:
     names: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        for name in ("positions", "velocities", "times", "lengths", "attractor"):
+            value = getattr(self, name)
+            if not isinstance(value, Tensor):
+                raise ShapeMismatchError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+        if self.lengths.is_floating_point() or self.lengths.is_complex() or self.lengths.dtype == torch.bool:
+            raise ShapeMismatchError(f"lengths must be an integer tensor, got {self.lengths.dtype}")
+        if isinstance(self.names, (str, bytes)):
+            raise ShapeMismatchError(f"names must be a sequence of strings, got {self.names!r}")
         object.__setattr__(self, "names", tuple(self.names))
         object.__setattr__(self, "lengths", self.lengths.to(dtype=torch.long, device=self.positions.device))
         self._validate()
@@ -117,11 +140,16 @@ class Demos:
             attractor: (d,) goal; None takes the mean of the demonstrations' end points.
             names: optional B labels.
         """
+        if isinstance(positions, (str, bytes)) or not hasattr(positions, "__len__"):
+            raise ShapeMismatchError(f"positions must be a list of (T_i, d) arrays, got {type(positions).__name__}")
+        dtype = resolve_dtype(dtype)
+        if dtype not in FLOAT_DTYPES:
+            raise ShapeMismatchError(f"dtype must be float32 or float64, got {dtype}")
         if len(positions) == 0:
-            raise TooFewSamplesError("a demonstration set needs at least one demonstration")
+            raise TooFewSamplesError("positions is empty: a demonstration set needs at least one demonstration")
         pos = []
         for i, p in enumerate(positions):
-            t = _as_tensor(p, dtype, device)
+            t = _as_tensor(p, dtype, device, "positions", i)
             if t.ndim != 2:
                 raise ShapeMismatchError(f"positions must have shape (T, d), got {tuple(t.shape)}", i)
             pos.append(t)
@@ -134,18 +162,16 @@ class Demos:
         lengths = torch.tensor([p.shape[0] for p in pos], dtype=torch.long, device=pos[0].device)
         T = int(lengths.max())
         if times is None:
-            step = 1.0 if dt is None else float(dt)
-            if not step > 0:
-                raise NonIncreasingTimeError(f"dt must be positive, got {dt}")
+            step = 1.0 if dt is None else check_float(dt, "dt", low=0.0, low_open=True, error=NonIncreasingTimeError)
             tms = [torch.arange(p.shape[0], dtype=dtype, device=p.device) * step for p in pos]
         else:
             if len(times) != len(pos):
                 raise ShapeMismatchError(f"{len(times)} time vectors for {len(pos)} demonstrations")
             tms = []
             for i, (t, p) in enumerate(zip(times, pos)):
-                tt = _as_tensor(t, dtype, p.device).reshape(-1)
+                tt = _as_tensor(t, dtype, p.device, "times", i).reshape(-1)
                 if tt.shape[0] != p.shape[0]:
-                    raise ShapeMismatchError(f"{tt.shape[0]} time stamps for {p.shape[0]} samples", i)
+                    raise ShapeMismatchError(f"times: {tt.shape[0]} time stamps for {p.shape[0]} samples", i)
                 tms.append(tt)
         P = _pad_edge(pos, T)
         Tm = _pad_edge(tms, T)
@@ -157,7 +183,7 @@ class Demos:
                 raise ShapeMismatchError(f"{len(velocities)} velocity arrays for {len(pos)} demonstrations")
             vel = []
             for i, (v, p) in enumerate(zip(velocities, pos)):
-                vv = _as_tensor(v, dtype, p.device)
+                vv = _as_tensor(v, dtype, p.device, "velocities", i)
                 if vv.shape != p.shape:
                     raise ShapeMismatchError(
                         f"velocities have shape {tuple(vv.shape)}, positions {tuple(p.shape)}", i
@@ -167,7 +193,9 @@ class Demos:
         if attractor is None:
             g = P[torch.arange(len(pos), device=P.device), lengths - 1].mean(0)
         else:
-            g = _as_tensor(attractor, dtype, P.device).reshape(-1)
+            g = _as_tensor(attractor, dtype, P.device, "attractor")
+            if g.shape != (P.shape[-1],):
+                raise ShapeMismatchError(f"attractor must have shape ({P.shape[-1]},), got {tuple(g.shape)}")
         return cls(P, V, Tm, lengths, g, tuple(names) if names is not None else ())
 
     # ------------------------------------------------------------------ validation
@@ -177,10 +205,11 @@ class Demos:
         mask = torch.arange(T, device=times.device).unsqueeze(0) < lengths.unsqueeze(1)
         if (lengths < MIN_SAMPLES).any():
             i = int(torch.nonzero(lengths < MIN_SAMPLES)[0])
-            raise TooFewSamplesError(f"has {int(lengths[i])} samples, at least {MIN_SAMPLES} are needed", i)
+            raise TooFewSamplesError(f"has {int(lengths[i])} samples (lengths[{i}]), at least {MIN_SAMPLES} are needed",
+                                     i)  # fmt: skip
         if (lengths > T).any():
             i = int(torch.nonzero(lengths > T)[0])
-            raise ShapeMismatchError(f"length {int(lengths[i])} exceeds the padded length {T}", i)
+            raise ShapeMismatchError(f"lengths[{i}] = {int(lengths[i])} exceeds the padded length {T}", i)
         for name, value in (("positions", positions), ("velocities", velocities)):
             if value is None:
                 continue
@@ -226,7 +255,7 @@ class Demos:
         if g.shape != (d,):
             raise ShapeMismatchError(f"attractor must have shape ({d},), got {tuple(g.shape)}")
         if not torch.isfinite(g).all():
-            raise NonFiniteError("attractor is not finite")
+            raise NonFiniteError("attractor contains NaN or Inf")
         if self.names and len(self.names) != B:
             raise ShapeMismatchError(f"{len(self.names)} names for {B} demonstrations")
         for name, t in (("velocities", V), ("times", Tm), ("attractor", g)):
@@ -306,20 +335,28 @@ class Demos:
         )
 
     def _rows(self, index: Index) -> Tensor:
-        if isinstance(index, int):
+        if isinstance(index, bool) or isinstance(index, (float, str, bytes)) or index is None:
+            raise InvalidIndexError(f"index must be an int, a slice, a sequence of ints or a bool mask, got {index!r}")
+        if isinstance(index, (int, np.integer)):
+            index = int(index)
             if not -self.n_demos <= index < self.n_demos:
-                raise IndexError(f"demonstration index {index} out of range for {self.n_demos} demonstrations")
+                raise InvalidIndexError(f"demonstration index {index} out of range for {self.n_demos} demonstrations")
             return torch.tensor([index % self.n_demos], device=self.device)
         if isinstance(index, slice):
             return torch.arange(self.n_demos, device=self.device)[index]
-        idx = torch.as_tensor(np.asarray(index) if not isinstance(index, Tensor) else index, device=self.device)
+        try:
+            idx = torch.as_tensor(np.asarray(index) if not isinstance(index, Tensor) else index, device=self.device)
+        except (TypeError, ValueError) as exc:
+            raise InvalidIndexError(f"index must be an int, a slice, a sequence of ints or a bool mask, got {index!r}") from exc
+        if idx.dtype != torch.bool and (idx.is_floating_point() or idx.is_complex()):
+            raise InvalidIndexError(f"index must hold integers or booleans, got {idx.dtype}")
         if idx.dtype == torch.bool:
             if idx.shape != (self.n_demos,):
                 raise ShapeMismatchError(f"boolean index of shape {tuple(idx.shape)} for {self.n_demos} demos")
             return torch.nonzero(idx).reshape(-1)
         idx = idx.reshape(-1).long()
         if ((idx < -self.n_demos) | (idx >= self.n_demos)).any():
-            raise IndexError(f"demonstration index out of range for {self.n_demos} demonstrations: {idx.tolist()}")
+            raise InvalidIndexError(f"demonstration index out of range for {self.n_demos} demonstrations: {idx.tolist()}")
         return idx % self.n_demos
 
     def __getitem__(self, index: Index) -> Demos:

@@ -49,7 +49,7 @@ import math
 import os
 import struct
 import zlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -60,7 +60,7 @@ from torch import Tensor
 
 from lfd_torch.data.demos import Demos
 from lfd_torch.errors import InvalidArgumentError, StoreError, TooFewSamplesError, UnknownNameError
-from lfd_torch.utils import resolve_device, resolve_dtype
+from lfd_torch.utils import check_cost, check_float, check_int, check_path, resolve_device, resolve_dtype
 
 __all__ = [
     "MNIST_ENV",
@@ -79,6 +79,11 @@ log = logging.getLogger(__name__)
 
 #: Environment variable naming the directory of the IDX files when no directory is passed.
 MNIST_ENV = "LFD_MNIST_DIR"
+
+#: Bounds that keep the cost of :func:`mnist_demos` finite: images read (n_demos, pool) and points per stroke.
+MAX_IMAGES = 70_000
+MAX_POINTS = 1_000_000
+MAX_UPSAMPLE = 64
 #: Split name -> file prefix of the standard distribution.
 MNIST_SPLITS: dict[str, str] = {"test": "t10k", "train": "train"}
 
@@ -100,7 +105,7 @@ def read_idx(path: str | os.PathLike[str]) -> np.ndarray:
         StoreError: unreadable or corrupt gzip; a header that is not IDX (two zero bytes, a known type code, at least
             one dimension); fewer or more data bytes than the dimensions declare.
     """
-    path = Path(path)
+    path = check_path(path, "path", error=StoreError)
     try:
         if path.name.endswith(".gz"):
             with gzip.open(path, "rb") as f:
@@ -146,6 +151,8 @@ def mnist_dir(directory: str | os.PathLike[str] | None = None) -> Path:
         StoreError: neither is set, or the directory does not exist.
     """
     source = "directory argument"
+    if directory is not None and (isinstance(directory, bytes) or not isinstance(directory, (str, os.PathLike))):
+        raise StoreError(f"MNIST directory must be a path (str or os.PathLike) or None, got {directory!r}")
     if directory is None or str(directory) == "":
         env = os.environ.get(MNIST_ENV, "")
         if not env:
@@ -170,7 +177,7 @@ def mnist_files(split: str = "test", directory: str | os.PathLike[str] | None = 
         StoreError: no directory, or no folder holding both files (the message lists every path looked for).
     """
     if split not in MNIST_SPLITS:
-        raise UnknownNameError("MNIST split", str(split), tuple(MNIST_SPLITS))
+        raise UnknownNameError("MNIST split", repr(split), tuple(MNIST_SPLITS))
     root = mnist_dir(directory)
     prefix = MNIST_SPLITS[split]
     looked: list[str] = []
@@ -518,7 +525,8 @@ def extract_stroke(
     Args:
         image: (H, W) intensities, uint8 0..255 (float images are taken as 0..255 too).
         threshold: ink threshold, fraction of 255 (0 < threshold < 1).
-        upsample: bilinear upsampling factor before binarisation (>= 1).
+        upsample: bilinear upsampling factor before binarisation, in [1, 64] (cost: H W upsample^2 pixels, at most
+            1e8).
         min_hole: holes smaller than this (px^2, original pixels) are filled; loops are larger.
         prune: terminal skeleton branches shorter than this (px) are removed as spurs.
         merge: junctions joined by a branch shorter than this (px) are one crossing.
@@ -538,14 +546,14 @@ def extract_stroke(
     img = image.detach().cpu().numpy() if isinstance(image, Tensor) else np.asarray(image)
     if img.ndim != 2 or min(img.shape) < 2:
         raise InvalidArgumentError(f"image must be a 2-D (H, W) array, got shape {tuple(img.shape)}")
-    if not 0.0 < threshold < 1.0:
-        raise InvalidArgumentError(f"threshold must lie in (0, 1), got {threshold}")
-    if int(upsample) != upsample or upsample < 1:
-        raise InvalidArgumentError(f"upsample must be an integer >= 1, got {upsample}")
+    check_float(threshold, "threshold", low=0.0, high=1.0, low_open=True, high_open=True)
+    if img.dtype.kind not in "fiub" or not np.isfinite(img).all():
+        raise InvalidArgumentError(f"image must hold finite real numbers (0..255), got {img.dtype}")
+    check_int(upsample, "upsample", low=1, high=MAX_UPSAMPLE)
+    check_cost("upsample", float(img.shape[0] * img.shape[1]) * upsample**2, 1e8, "pixels after upsampling")
     if not 0.0 <= loop_gap < 1.0:
         raise InvalidArgumentError(f"loop_gap must lie in [0, 1), got {loop_gap}")
-    if int(excursions) != excursions or excursions < 0:
-        raise InvalidArgumentError(f"excursions must be an integer >= 0, got {excursions}")
+    check_int(excursions, "excursions", low=0, high=100)
     for name, value in (("min_hole", min_hole), ("prune", prune), ("merge", merge), ("turn_weight", turn_weight),
                         ("height_weight", height_weight), ("level_tol", level_tol), ("smooth", smooth)):  # fmt: skip
         if not (value >= 0 and math.isfinite(value)):
@@ -654,8 +662,7 @@ def stroke_trajectory(
     """
     if time_law not in ("min_jerk", "constant"):
         raise UnknownNameError("time law", str(time_law), ("min_jerk", "constant"))
-    if int(n_points) != n_points or n_points < 3:
-        raise InvalidArgumentError(f"n_points must be an integer >= 3, got {n_points}")
+    check_int(n_points, "n_points", low=3, high=MAX_POINTS)
     if not (mm_per_pixel > 0 and math.isfinite(mm_per_pixel)):
         raise InvalidArgumentError(f"mm_per_pixel must be finite and > 0, got {mm_per_pixel}")
     if not (mean_speed > 0 and math.isfinite(mean_speed)):
@@ -758,14 +765,15 @@ def mnist_demos(
             fewer usable images than ``n_demos``.
         StoreError, UnknownNameError: from :func:`load_mnist`.
     """
-    if isinstance(digit, bool) or int(digit) != digit or not 0 <= int(digit) <= 9:
-        raise InvalidArgumentError(f"digit must be an integer 0..9, got {digit!r}")
-    if int(n_demos) != n_demos or n_demos < 1:
-        raise InvalidArgumentError(f"n_demos must be an integer >= 1, got {n_demos!r}")
-    if int(offset) != offset or offset < 0:
-        raise InvalidArgumentError(f"offset must be an integer >= 0, got {offset!r}")
-    if pool is not None and (int(pool) != pool or pool < 1):
-        raise InvalidArgumentError(f"pool must be None or an integer >= 1, got {pool!r}")
+    check_int(digit, "digit", low=0, high=9)
+    check_int(n_demos, "n_demos", low=1, high=MAX_IMAGES)
+    check_int(offset, "offset", low=0)
+    check_int(pool, "pool", low=1, high=MAX_IMAGES, allow_none=True)
+    check_int(n_points, "n_points", low=3, high=MAX_POINTS)
+    check_float(mm_per_pixel, "mm_per_pixel", low=0.0, low_open=True)
+    check_float(mean_speed, "mean_speed", low=0.0, low_open=True)
+    if stroke is not None and not isinstance(stroke, Mapping):
+        raise InvalidArgumentError(f"stroke must be a mapping of extract_stroke keyword arguments, got {stroke!r}")
     for name, value in (("min_coverage", min_coverage), ("min_ink_share", min_ink_share)):
         if not 0.0 <= value <= 1.0:
             raise InvalidArgumentError(f"{name} must lie in [0, 1], got {value}")

@@ -16,18 +16,47 @@ import cvxpy as cp
 
 from lfd_torch.errors import InvalidArgumentError, SolverError
 
-__all__ = ["DEFAULT_SOLVERS", "solve_problem", "normalize_solvers"]
+__all__ = ["DEFAULT_SOLVERS", "solve_problem", "normalize_solvers", "normalize_solver_options"]
 
 #: Solvers tried in order when none are named.
 DEFAULT_SOLVERS: tuple[str, ...] = ("CLARABEL", "SCS")
 
 
 def normalize_solvers(solvers: str | Sequence[str]) -> tuple[str, ...]:
-    """``"CLARABEL"`` or ``["CLARABEL", "SCS"]`` -> upper-case tuple; an empty list is an error."""
-    names = (solvers,) if isinstance(solvers, str) else tuple(solvers)
-    if not names:
-        raise SolverError("no solver named; give e.g. solvers=('CLARABEL', 'SCS')")
-    return tuple(str(n).upper() for n in names)
+    """``"CLARABEL"`` or ``["CLARABEL", "SCS"]`` -> upper-case tuple; an empty list is an error.
+
+    Raises:
+        InvalidArgumentError: ``solvers`` is not a string or a sequence of strings, or is empty.
+    """
+    if isinstance(solvers, str):
+        names: tuple[Any, ...] = (solvers,)
+    elif isinstance(solvers, Sequence):
+        names = tuple(solvers)
+    else:
+        raise InvalidArgumentError(f"solvers must be a solver name or a sequence of names, got {solvers!r}")
+    if not names or not all(isinstance(n, str) for n in names):
+        raise InvalidArgumentError(f"solvers must name at least one solver, e.g. ('CLARABEL', 'SCS'), got {solvers!r}")
+    return tuple(n.upper() for n in names)
+
+
+def normalize_solver_options(solver_options: Mapping[str, Mapping[str, Any]] | None) -> dict[str, dict[str, Any]]:
+    """``{solver: {option: value}}`` with upper-case solver names.
+
+    Raises:
+        InvalidArgumentError: not a mapping of solver names to mappings of option names.
+    """
+    if solver_options is None:
+        return {}
+    if not isinstance(solver_options, Mapping):
+        raise InvalidArgumentError(f"solver_options must be a mapping {{solver: {{option: value}}}}, got "
+                                   f"{solver_options!r}")  # fmt: skip
+    out: dict[str, dict[str, Any]] = {}
+    for name, opts in solver_options.items():
+        if not isinstance(name, str) or not isinstance(opts, Mapping) or not all(isinstance(k, str) for k in opts):
+            raise InvalidArgumentError(f"solver_options[{name!r}] must be a mapping of option names to values, got "
+                                       f"{opts!r}")  # fmt: skip
+        out[name.upper()] = dict(opts)
+    return out
 
 
 def solve_problem(
@@ -50,8 +79,9 @@ def solve_problem(
 
     Raises:
         SolverError: no solver reached status ``optimal`` (the message lists each attempt and its outcome).
+        InvalidArgumentError: malformed ``solvers`` or ``solver_options``, or an option a solver does not know.
     """
-    options = {str(k).upper(): dict(v) for k, v in (solver_options or {}).items()}
+    options = normalize_solver_options(solver_options)
     attempts: list[str] = []
     for name in normalize_solvers(solvers):
         try:
@@ -62,10 +92,11 @@ def solve_problem(
                 problem.solve(solver=name, **{"warm_start": False, **options.get(name, {})})
         except TypeError as exc:  # an option the solver does not know: the caller's mistake, not a solver failure
             raise InvalidArgumentError(f"solver_options[{name!r}] = {options.get(name, {})!r}: {exc}") from exc
-        except (cp.error.SolverError, cp.error.DCPError, ValueError, ArithmeticError) as exc:
+        except (cp.error.SolverError, cp.error.DCPError, ValueError, ArithmeticError, RuntimeError) as exc:
             attempts.append(f"{name}: {type(exc).__name__}: {exc}")
             continue
         if problem.status == cp.OPTIMAL:
             return name
         attempts.append(f"{name}: status {problem.status}")
-    raise SolverError(f"{what} not solved to optimality; " + "; ".join(attempts))
+    raise SolverError(f"{what} not solved to optimality (solvers={list(normalize_solvers(solvers))}, solver_options="
+                      f"{options}); " + "; ".join(attempts))  # fmt: skip

@@ -44,17 +44,18 @@ import torch
 from torch import Tensor
 
 from lfd_torch.data import Demos
-from lfd_torch.ds.convex import DEFAULT_SOLVERS, solve_problem
+from lfd_torch.ds.convex import DEFAULT_SOLVERS, normalize_solver_options, normalize_solvers, solve_problem
 from lfd_torch.ds.lyapunov import estimate_lyapunov_matrix, lyapunov_violation_rate
 from lfd_torch.ds.primitive import StablePrimitive, quadratic_margins, residual_velocity_covariances
 from lfd_torch.errors import (
     CertificationError,
-    NonFiniteError,
+    InvalidArgumentError,
     ShapeMismatchError,
     TooFewSamplesError,
     UnknownNameError,
 )
 from lfd_torch.gmm import GMM, check_samples
+from lfd_torch.utils import check_float, check_generator, check_tensor, solver_errors
 
 __all__ = ["LPVDS", "LYAPUNOV_KINDS", "fit_lpvds", "resolve_gmm", "solve_lpv_matrices", "training_samples"]
 
@@ -89,14 +90,13 @@ def training_samples(demos: Demos, attractor: Tensor | None = None) -> tuple[Ten
     if not isinstance(demos, Demos):
         raise ShapeMismatchError(f"demos must be a lfd_torch.data.Demos, got {type(demos).__name__}")
     x, x_dot, _ = demos.samples()
+    check_tensor(x, "demos positions")
+    check_tensor(x_dot, "demos velocities")
     if attractor is None:
         g = demos.attractor
     else:
-        g = torch.as_tensor(attractor, dtype=demos.dtype, device=demos.device).reshape(-1)
-        if g.shape != (demos.dim,):
-            raise ShapeMismatchError(f"attractor must have shape ({demos.dim},), got {tuple(g.shape)}")
-        if not torch.isfinite(g).all():
-            raise NonFiniteError("attractor contains NaN or Inf")
+        check_tensor(attractor, "attractor", ndim=1, last_dim=demos.dim, shape_hint=f"({demos.dim},)")
+        g = attractor.to(dtype=demos.dtype, device=demos.device)
     return x, x_dot, g
 
 
@@ -120,18 +120,18 @@ def resolve_gmm(gmm: GMMSource, x: Tensor, x_dot: Tensor, generator: torch.Gener
         out = gmm.to(dtype=x.dtype, device=x.device)
     elif callable(gmm):
         if generator is None:
-            raise ValueError("a GMM fitter needs a torch.Generator: pass generator=...")
+            raise InvalidArgumentError("a GMM fitter needs generator=torch.Generator(), got None")
         try:
             params = inspect.signature(gmm).parameters
         except (TypeError, ValueError):
             params = {}
         out = gmm(x, x_dot=x_dot, generator=generator) if "x_dot" in params else gmm(x, generator=generator)
         if not isinstance(out, GMM):
-            raise TypeError(f"the GMM fitter returned {type(out).__name__}, not a lfd_torch.gmm.GMM")
+            raise InvalidArgumentError(f"the gmm fitter returned {type(out).__name__}, not a lfd_torch.gmm.GMM")
     else:
-        raise TypeError(f"gmm must be a lfd_torch.gmm.GMM or a fitter callable, got {type(gmm).__name__}")
+        raise InvalidArgumentError(f"gmm must be a lfd_torch.gmm.GMM or a fitter callable, got {type(gmm).__name__}")
     if out.dim != x.shape[-1]:
-        raise ShapeMismatchError(f"the GMM has dimension {out.dim}, the data {x.shape[-1]}")
+        raise ShapeMismatchError(f"the gmm has dimension {out.dim}, the data {x.shape[-1]}")
     return out
 
 
@@ -187,10 +187,8 @@ def solve_lpv_matrices(
     N, d = x.shape
     if gamma.ndim != 2 or gamma.shape[0] != N:
         raise ShapeMismatchError(f"gamma must have shape ({N}, K), got {tuple(gamma.shape)}")
-    if not eps > 0:
-        raise ValueError(f"eps must be positive, got {eps}")
-    if not ridge >= 0:
-        raise ValueError(f"ridge must be non-negative, got {ridge}")
+    check_float(eps, "eps", low=0.0, low_open=True)
+    check_float(ridge, "ridge", low=0.0)
     K = gamma.shape[1]
     f64 = dict(dtype=torch.float64, device=x.device)
     e = (x - attractor).to(**f64)
@@ -203,8 +201,9 @@ def solve_lpv_matrices(
     G = z.T @ z / N
     G = G + (ridge * float(torch.trace(G)) / (K * d) + 1e-14) * torch.eye(K * d, **f64)
     H = (v / u).T @ z / N
-    L = torch.linalg.cholesky(G)
-    Y = torch.linalg.solve_triangular(L, H.T, upper=False).T  # H L^-T
+    with solver_errors("LPV-DS A step: Cholesky factor of the moment matrix"):
+        L = torch.linalg.cholesky(G)
+        Y = torch.linalg.solve_triangular(L, H.T, upper=False).T  # H L^-T
     problem, A_vars, params = _a_step_problem(K, d)
     P64 = P.to(**f64)
     params["L"].value = L.cpu().numpy()
@@ -232,6 +231,9 @@ def fit_lpvds(
 ) -> LPVDS:
     """Fit a globally stable LPV-DS: GMM, then P step, then A step (module docstring).
 
+    Cost: the GMM fit (its own bounds), an O(N K^2 d^2) moment matrix, and two convex programs: the P step with
+    d (d + 1) / 2 variables and N hinge terms, the A step with K d^2 variables and K LMI constraints of size d.
+
     Args:
         demos: training demonstrations (all valid samples are used).
         attractor: optional (d,) goal; default ``demos.attractor``.
@@ -252,46 +254,58 @@ def fit_lpvds(
     Raises:
         UnknownNameError: unknown ``lyapunov`` string.
         ShapeMismatchError, NonFiniteError, TooFewSamplesError: malformed input.
+        InvalidArgumentError: a hyperparameter of the wrong type or out of range, a fitter without a generator.
         SolverError: a convex program was not solved to optimality by any solver.
         CertificationError: the solution does not satisfy lambda_max(A_k^T P + P A_k) < 0 in float64.
     """
     t_start = time.perf_counter()
     x, x_dot, g = training_samples(demos, attractor)
+    check_float(eps, "eps", low=0.0, low_open=True)
+    check_float(ridge, "ridge", low=0.0)
+    check_float(p_margin, "p_margin", low=0.0, high=1.0, high_open=True)
+    check_float(p_min_eigenvalue, "p_min_eigenvalue", low=0.0, high=1.0, low_open=True)
+    normalize_solvers(solvers)
+    normalize_solver_options(solver_options)
+    if generator is not None:
+        check_generator(generator)
     mixture = resolve_gmm(gmm, x, x_dot, generator)
     K, d = mixture.n_components, mixture.dim
     if x.shape[0] < 2:
         raise TooFewSamplesError(f"{x.shape[0]} samples; at least 2 are needed")
     t_gmm = time.perf_counter()
     if isinstance(lyapunov, Tensor):
+        check_tensor(lyapunov, "lyapunov", ndim=2, shape_hint=f"({d}, {d})")
         P = lyapunov.to(dtype=x.dtype, device=x.device)
         if P.shape != (d, d):
-            raise ShapeMismatchError(f"P must have shape ({d}, {d}), got {tuple(P.shape)}")
+            raise ShapeMismatchError(f"lyapunov (P) must have shape ({d}, {d}), got {tuple(P.shape)}")
         P64 = P.to(torch.float64)
-        if not torch.isfinite(P64).all() or not torch.allclose(P64, P64.T) or float(torch.linalg.eigvalsh(P64)[0]) <= 0:
-            raise CertificationError("the given P is not a finite symmetric positive-definite matrix")
+        if not torch.allclose(P64, P64.T) or float(torch.linalg.eigvalsh(P64)[0]) <= 0:
+            raise CertificationError("the given lyapunov matrix P is not symmetric positive definite")
         P = 0.5 * (P + P.T) / float(torch.linalg.eigvalsh(P64)[-1])
         lyapunov_name = "given"
     elif lyapunov == "qlf":
         P = torch.eye(d, dtype=x.dtype, device=x.device)
         lyapunov_name = "qlf"
     elif lyapunov == "pqlf":
-        P = estimate_lyapunov_matrix(
-            x,
-            x_dot,
-            g,
-            margin=p_margin,
-            min_eigenvalue=p_min_eigenvalue,
-            solvers=solvers,
-            solver_options=solver_options,
-        )
+        with solver_errors("LPV-DS P step"):
+            P = estimate_lyapunov_matrix(
+                x,
+                x_dot,
+                g,
+                margin=p_margin,
+                min_eigenvalue=p_min_eigenvalue,
+                solvers=solvers,
+                solver_options=solver_options,
+            )
         lyapunov_name = "pqlf"
     else:
-        raise UnknownNameError("Lyapunov function", str(lyapunov), LYAPUNOV_KINDS)
+        raise UnknownNameError("lyapunov", repr(lyapunov), LYAPUNOV_KINDS)
     t_p = time.perf_counter()
     gamma = mixture.posterior(x)
-    A, solver = solve_lpv_matrices(
-        x, x_dot, gamma, g, P, eps=eps, ridge=ridge, solvers=solvers, solver_options=solver_options
-    )
+    with solver_errors("LPV-DS A step"):
+        A, solver = solve_lpv_matrices(
+            x, x_dot, gamma, g, P, eps=eps, ridge=ridge, solvers=solvers, solver_options=solver_options
+        )
     margins = quadratic_margins(A, P)
     if not bool((margins < 0).all()):
         raise CertificationError(

@@ -35,8 +35,9 @@ import torch
 from torch import Tensor
 
 from lfd_torch.ds.convex import DEFAULT_SOLVERS, solve_problem
-from lfd_torch.errors import CertificationError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.errors import CertificationError, ShapeMismatchError, TooFewSamplesError
 from lfd_torch.gmm import check_samples
+from lfd_torch.utils import check_float, check_tensor, solver_errors
 
 __all__ = [
     "estimate_lyapunov_matrix",
@@ -52,8 +53,7 @@ def _check_attractor(x: Tensor, attractor: Tensor) -> None:
         raise ShapeMismatchError(f"attractor must have shape ({x.shape[-1]},), got {shape}")
     if attractor.dtype != x.dtype or attractor.device != x.device:
         raise ShapeMismatchError(f"attractor is {attractor.dtype} on {attractor.device}, x is {x.dtype} on {x.device}")
-    if not torch.isfinite(attractor).all():
-        raise NonFiniteError("attractor contains NaN or Inf")
+    check_tensor(attractor, "attractor")
 
 
 def quadratic_lyapunov(x: Tensor, attractor: Tensor, P: Tensor) -> Tensor:
@@ -143,16 +143,15 @@ def estimate_lyapunov_matrix(
     Raises:
         ShapeMismatchError, NonFiniteError: malformed input.
         TooFewSamplesError: fewer informative samples than free entries of P.
-        ValueError: ``margin`` outside [0, 1) or ``min_eigenvalue`` outside (0, 1].
+        InvalidArgumentError: ``margin`` outside [0, 1), ``min_eigenvalue`` outside (0, 1] or ``rel_tol`` < 0.
         SolverError: no solver reached optimality.
         CertificationError: the returned matrix is not positive definite in float64.
     """
     check_samples(x, x_dot, min_samples=1)
     _check_attractor(x, attractor)
-    if not 0.0 <= margin < 1.0:
-        raise ValueError(f"margin must lie in [0, 1), got {margin}")
-    if not 0.0 < min_eigenvalue <= 1.0:
-        raise ValueError(f"min_eigenvalue must lie in (0, 1], got {min_eigenvalue}")
+    check_float(margin, "margin", low=0.0, high=1.0, high_open=True)
+    check_float(min_eigenvalue, "min_eigenvalue", low=0.0, high=1.0, low_open=True)
+    check_float(rel_tol, "rel_tol", low=0.0)
     d = x.shape[-1]
     F = _direction_features(x, x_dot, attractor, rel_tol)
     if F.shape[0] < d * (d + 1) // 2:
@@ -170,7 +169,8 @@ def estimate_lyapunov_matrix(
     solve_problem(problem, solvers, solver_options, what="P-QLF P step")
     P = torch.as_tensor(np.asarray(P_var.value), dtype=torch.float64)
     P = 0.5 * (P + P.T)
-    eig = torch.linalg.eigvalsh(P)
+    with solver_errors("P-QLF P step: eigenvalues of the solution"):
+        eig = torch.linalg.eigvalsh(P)
     if not float(eig[0]) > 0:
         raise CertificationError(f"P step returned a matrix that is not positive definite (eigenvalues {eig.tolist()})")
     P = P / eig[-1]

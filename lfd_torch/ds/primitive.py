@@ -36,10 +36,18 @@ from typing import Any, ClassVar, NamedTuple
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import CertificationError, NonFiniteError, ShapeMismatchError, StoreError, UnknownNameError
+from lfd_torch.errors import (
+    CertificationError,
+    LfdError,
+    NonFiniteError,
+    ShapeMismatchError,
+    StoreError,
+    UnknownNameError,
+)
 from lfd_torch.gmm import GMM, GaussianBank
 from lfd_torch.store import atomic_path
-from lfd_torch.store.checksum import DIGEST_KEY, payload_digest, verify_digest
+from lfd_torch.store.checksum import DIGEST_KEY, compact_cpu, payload_digest, verify_digest
+from lfd_torch.utils import FLOAT_DTYPES, check_path, check_tensor, resolve_device, resolve_dtype
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -182,16 +190,9 @@ class StablePrimitive:
 
     # ------------------------------------------------------------------ evaluation
     def _check(self, x: Tensor) -> None:
-        if not isinstance(x, Tensor) or x.ndim == 0 or x.shape[-1] != self.dim:
-            shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
-            raise ShapeMismatchError(f"positions must have shape (..., {self.dim}), got {shape}")
-        if x.dtype != self.dtype or x.device != self.device:
-            raise ShapeMismatchError(
-                f"positions are {x.dtype} on {x.device}, the primitive is {self.dtype} on {self.device}; "
-                "convert one with .to(dtype=..., device=...)"
-            )
-        if x.numel() and not bool(torch.isfinite(x).all()):
-            raise NonFiniteError("positions contain NaN or Inf")
+        """x (..., d) positions in the primitive's dtype and device, finite and below the overflow magnitude."""
+        check_tensor(x, "x (positions)", min_ndim=1, last_dim=self.dim, dtype=self.dtype, device=self.device,
+                     shape_hint=f"(..., {self.dim})")  # fmt: skip
 
     def component_velocities(self, x: Tensor) -> Tensor:
         """Velocity of every linear component, A_k (x - g).
@@ -269,8 +270,11 @@ class StablePrimitive:
 
     # ------------------------------------------------------------------ conversion and persistence
     def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> StablePrimitive:
-        """A copy with every tensor cast to ``dtype`` and moved to ``device`` (the certificate is re-checked)."""
-        f = dict(dtype=dtype or self.dtype, device=device or self.device)
+        """A copy with every tensor cast to ``dtype`` (float32 or float64, or its name) and moved to ``device``."""
+        dtype = resolve_dtype(dtype)
+        if dtype is not None and dtype not in FLOAT_DTYPES:
+            raise ShapeMismatchError(f"dtype must be float32 or float64, got {dtype}")
+        f = dict(dtype=dtype or self.dtype, device=resolve_device(device) or self.device)
         return dataclasses.replace(
             self,
             gmm=self.gmm.to(**f),
@@ -281,16 +285,20 @@ class StablePrimitive:
         )
 
     def state_dict(self) -> dict[str, Any]:
-        """Plain dict: ``schema_version`` (int), ``kind`` (str), ``info`` (JSON str) and the tensors."""
+        """Plain dict: ``schema_version`` (int), ``kind`` (str), ``info`` (JSON str) and the tensors.
+
+        Each tensor is a compact CPU copy (its storage holds exactly its elements): a view of a larger storage would
+        save bytes that no checksum covers, and a flipped bit there would go unnoticed.
+        """
         return {
             "schema_version": SCHEMA_VERSION,
             "kind": self.kind,
             "info": _to_json(self.info),
-            "gmm": {k: v.detach().cpu() for k, v in self.gmm.state_dict().items()},
-            "A": self.A.detach().cpu(),
-            "attractor": self.attractor.detach().cpu(),
-            "P": self.P.detach().cpu(),
-            "velocity_covariances": self.velocity_covariances.detach().cpu(),
+            "gmm": {k: compact_cpu(v) for k, v in self.gmm.state_dict().items()},
+            "A": compact_cpu(self.A),
+            "attractor": compact_cpu(self.attractor),
+            "P": compact_cpu(self.P),
+            "velocity_covariances": compact_cpu(self.velocity_covariances),
         }
 
     @classmethod
@@ -335,9 +343,10 @@ class StablePrimitive:
         """
         state = self.state_dict()
         state[DIGEST_KEY] = payload_digest(state)
+        path = check_path(path, "path", error=StoreError)
         with atomic_path(path) as tmp:
             torch.save(state, tmp)
-        return Path(path)
+        return path
 
     @classmethod
     def load(
@@ -351,7 +360,12 @@ class StablePrimitive:
         if not isinstance(state, Mapping):
             raise StoreError(f"{path} does not hold a primitive state dict")
         verify_digest(state, f"primitive file {path}")
-        return cls.from_state_dict(state, dtype=dtype, device=device)
+        try:
+            return cls.from_state_dict(state, dtype=dtype, device=device)
+        except CertificationError as exc:
+            raise CertificationError(f"primitive file {path}: {exc}") from exc
+        except (LfdError, KeyError, TypeError, ValueError, AttributeError, RuntimeError) as exc:
+            raise StoreError(f"primitive file {path}: {type(exc).__name__}: {exc}") from exc
 
     def __repr__(self) -> str:
         cert = self.stability_certificate()

@@ -87,9 +87,10 @@ from torch import Tensor
 from lfd_torch.data import Demos
 from lfd_torch.ds.lpvds import resolve_gmm, training_samples
 from lfd_torch.ds.primitive import StablePrimitive, quadratic_margins, residual_velocity_covariances
-from lfd_torch.errors import CertificationError, SolverError, TooFewSamplesError, UnknownNameError
+from lfd_torch.errors import CertificationError, InvalidArgumentError, SolverError, TooFewSamplesError
 from lfd_torch.gmm import GMM, PCGMMFitter, fit_em, fit_em_bic
-from lfd_torch.gmm.em import effective_sample_size
+from lfd_torch.gmm.em import MAX_ITER, MAX_RESTARTS, check_k_range, effective_sample_size
+from lfd_torch.utils import check_choice, check_float, check_generator, check_int, solver_errors
 
 __all__ = ["SEDS", "SEDS_OBJECTIVES", "SEDS_K_SELECTIONS", "fit_seds", "SEDSParameters"]
 
@@ -299,11 +300,12 @@ def fit_seds(
             units of u / s (the RMS speed over the RMS distance to g of the training data), added to either
             objective as ||A_k + I||^2 / (2 gain_prior^2 N) summed over k; None: no prior (maximum likelihood /
             least squares).
-        max_iter: L-BFGS iterations (in total, over restarts).
-        max_restarts: restarts of L-BFGS from the best point evaluated when it leaves the representable range.
+        max_iter: L-BFGS iterations (in total, over restarts), in [1, 100000]; each costs O(N K d^2).
+        max_restarts: restarts of L-BFGS from the best point evaluated when it leaves the representable range,
+            in [0, 1000].
         tolerance_grad: L-BFGS first-order optimality tolerance.
         tolerance_change: L-BFGS tolerance on changes of the objective and parameters.
-        em_n_init: k-means++ restarts of the EM initialisation.
+        em_n_init: k-means++ restarts of the EM initialisation, in [1, 1000].
         generator: torch generator for PC-GMM (``k_selection="pcgmm"``) and the EM initialisation (the only
             randomness).
 
@@ -316,22 +318,30 @@ def fit_seds(
     Raises:
         UnknownNameError: unknown ``objective`` or ``k_selection``.
         TooFewSamplesError, ShapeMismatchError, NonFiniteError: malformed input.
+        InvalidArgumentError: a hyperparameter of the wrong type or out of range (e.g. ``n_components=2.5``,
+            ``max_iter=0``), or no generator.
         SolverError: the optimisation produced a non-finite objective.
         CertificationError: the result fails lambda_max(A_k + A_k^T) < 0 in float64.
     """
-    if objective not in SEDS_OBJECTIVES:
-        raise UnknownNameError("SEDS objective", str(objective), SEDS_OBJECTIVES)
-    if k_selection not in SEDS_K_SELECTIONS:
-        raise UnknownNameError("SEDS k_selection", str(k_selection), SEDS_K_SELECTIONS)
-    if not eps > 0:
-        raise ValueError(f"eps must be positive, got {eps}")
-    if not reg > 0:
-        raise ValueError(f"reg must be positive, got {reg}")
-    if gain_prior is not None and not gain_prior > 0:
-        raise ValueError(f"gain_prior must be positive or None, got {gain_prior}")
+    check_choice(objective, "objective", SEDS_OBJECTIVES)
+    check_choice(k_selection, "k_selection", SEDS_K_SELECTIONS)
+    check_int(n_components, "n_components", low=1, allow_none=True)
+    check_float(eps, "eps", low=0.0, low_open=True)
+    check_float(reg, "reg", low=0.0, low_open=True)
+    check_float(gain_prior, "gain_prior", low=0.0, low_open=True, allow_none=True)
+    check_int(max_iter, "max_iter", low=1, high=MAX_ITER)
+    check_int(max_restarts, "max_restarts", low=0, high=MAX_RESTARTS)
+    check_int(em_n_init, "em_n_init", low=1, high=MAX_RESTARTS)
+    check_float(tolerance_grad, "tolerance_grad", low=0.0)
+    check_float(tolerance_change, "tolerance_change", low=0.0)
+    check_generator(generator, where="fit_seds")
+    if pcgmm is not None and not callable(pcgmm):
+        raise InvalidArgumentError(f"pcgmm must be a PC-GMM fitter (e.g. PCGMMFitter()) or None, got {pcgmm!r}")
     t0 = time.perf_counter()
     x, x_dot, g = training_samples(demos, attractor)
     N, d = x.shape
+    if n_components is None and k_selection != "pcgmm":
+        check_k_range(k_range, N)
     f64 = dict(dtype=torch.float64, device=x.device)
     e = (x - g).to(**f64)
     v = x_dot.to(**f64)
@@ -352,11 +362,12 @@ def fit_seds(
             n_eff = effective_sample_size(joint_data, demo_index.to(x.device))
         joint = fit_em_bic(joint_data, k_range=k_range, generator=generator, n_init=em_n_init, n_effective=n_eff)
     else:
-        if int(n_components) < 1 or int(n_components) > N:
+        if n_components > N:
             raise TooFewSamplesError(f"n_components={n_components} needs 1 <= K <= N = {N}")
-        joint = fit_em(joint_data, int(n_components), generator=generator, n_init=em_n_init)
+        joint = fit_em(joint_data, n_components, generator=generator, n_init=em_n_init)
     eps_s = eps * s / u
-    params = _init_parameters(joint, d, eps_s, reg)
+    with solver_errors("SEDS initialisation"):
+        params = _init_parameters(joint, d, eps_s, reg)
     t_init = time.perf_counter()
 
     data_loss = params.mse if objective == "mse" else params.negative_log_likelihood

@@ -42,13 +42,18 @@ import torch
 from torch import Tensor
 
 from lfd_torch.gmm.gaussian import gaussian_log_density
+from lfd_torch.errors import ShapeMismatchError
 from lfd_torch.gmm.model import GMM, InvalidGMMError, _gmm_from_dense_labels, check_samples
 from lfd_torch.gmm.niw import NIWPrior, niw_log_marginal_likelihood, niw_posterior, sample_gamma, sample_niw
 from lfd_torch.gmm.postprocess import merge_small_components
+from lfd_torch.utils import check_float, check_generator, check_int
 
 __all__ = ["fit_damm", "damm_labels", "DAMMResult", "vmf_log_normalizer"]
 
 MIN_SAMPLES_DAMM = 3
+
+#: Bound on the sampler iterations (keeps the cost of a call finite).
+MAX_ITERATIONS = 10_000
 
 
 @dataclass(frozen=True)
@@ -277,19 +282,21 @@ def damm_labels(
         alpha: DP concentration (> 0).
         kappa: vMF concentration of the directions within a component (> 0; larger splits more by direction).
         kappa0, nu0_offset, psi_scale: NIW prior on standardised positions (as in :mod:`~lfd_torch.gmm.pcgmm`).
-        n_iter: sampler iterations (each: parameters, labels, splits, merges).
+        n_iter: sampler iterations in [1, 10000] (each: parameters, labels, splits, merges; O(N K d^2)).
         min_cluster_size: clusters smaller than this are merged into the nearest one (None: max(3, 1 % of N)).
 
     Returns:
         :class:`DAMMResult`.
     """
+    if x_dot is None:
+        raise ShapeMismatchError("x_dot (N, d) velocities are required, got None")
     check_samples(x, x_dot, min_samples=MIN_SAMPLES_DAMM)
+    check_generator(generator, where="DAMM")
     for name, v in (("alpha", alpha), ("kappa", kappa), ("kappa0", kappa0), ("nu0_offset", nu0_offset),
                     ("psi_scale", psi_scale)):
-        if not float(v) > 0:
-            raise InvalidGMMError(f"{name} must be positive, got {v}")
-    if int(n_iter) < 1:
-        raise InvalidGMMError(f"n_iter must be >= 1, got {n_iter}")
+        check_float(v, name, low=0.0, low_open=True, error=InvalidGMMError)
+    check_int(n_iter, "n_iter", low=1, high=MAX_ITERATIONS, error=InvalidGMMError)
+    check_int(min_cluster_size, "min_cluster_size", low=1, allow_none=True, error=InvalidGMMError)
     N, d = x.shape
     if d < 2:
         raise InvalidGMMError("DAMM needs d >= 2 (directions live on the unit sphere)")
@@ -367,6 +374,7 @@ def fit_damm(
         ShapeMismatchError, NonFiniteError, TooFewSamplesError: malformed input.
         InvalidGMMError: invalid hyperparameters or d < 2.
     """
+    check_float(reg_covar, "reg_covar", low=0.0, error=InvalidGMMError)
     res = damm_labels(
         x, x_dot, generator=generator, alpha=alpha, kappa=kappa, kappa0=kappa0, nu0_offset=nu0_offset,
         psi_scale=psi_scale, n_iter=n_iter, min_cluster_size=min_cluster_size,

@@ -30,13 +30,14 @@ effective size, a conservative choice). The plain BIC stays the default (``n_eff
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 
 import torch
 from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError, TooFewSamplesError
 from lfd_torch.gmm.model import GMM, check_samples
+from lfd_torch.utils import check_float, check_generator, check_int
 
 __all__ = [
     "fit_em",
@@ -67,6 +68,10 @@ def kmeans_plus_plus(x: Tensor, n_components: int, *, generator: torch.Generator
     Returns:
         (N,) int64 hard labels in 0..K-1 (every label used).
     """
+    check_samples(x, min_samples=1)
+    check_int(n_components, "n_components", low=1, high=x.shape[0])
+    check_int(n_iter, "n_iter", low=0, high=MAX_ITER)
+    check_generator(generator, where="k-means++")
     N = x.shape[0]
     first = int(torch.randint(N, (1,), generator=generator, device=x.device))
     centers = x[first : first + 1]
@@ -127,7 +132,7 @@ def refine_em(
     Args:
         x: (N, d) samples.
         init: starting mixture (same dtype/device as x).
-        max_iter: maximum number of EM iterations.
+        max_iter: maximum number of EM iterations, in [0, 100000].
         tol: stop when the per-sample penalised log-likelihood improves by less than ``tol``.
         reg_covar: relative covariance regularisation (module docstring).
 
@@ -136,6 +141,11 @@ def refine_em(
         of every iterate, starting with ``init`` (non-decreasing up to rounding).
     """
     check_samples(x, min_samples=1)
+    if not isinstance(init, GMM):
+        raise InvalidArgumentError(f"init must be a GMM, got {type(init).__name__}")
+    check_int(max_iter, "max_iter", low=0, high=MAX_ITER)
+    check_float(tol, "tol", low=0.0)
+    check_float(reg_covar, "reg_covar", low=0.0)
     rho = reg_covar * _data_scale(x)
     gmm = init
     f, resp = _objective(gmm, x, rho)
@@ -150,12 +160,26 @@ def refine_em(
     return gmm, torch.stack(history)
 
 
-def _check_em_args(x: Tensor, n_components: int) -> None:
+#: Bounds that keep the cost of an EM call finite (iterations, restarts, candidate K).
+MAX_ITER = 100_000
+MAX_RESTARTS = 1_000
+MAX_K_CANDIDATES = 1_000
+
+
+def _check_em_args(
+    x: Tensor, n_components: int, *, n_init: int = 1, max_iter: int = 1, tol: float = 0.0, reg_covar: float = 0.0,
+    kmeans_iter: int = 1, generator: object = None,
+) -> None:  # fmt: skip
     check_samples(x, min_samples=1)
-    if int(n_components) < 1:
-        raise TooFewSamplesError(f"n_components must be >= 1, got {n_components}")
+    check_int(n_components, "n_components", low=1, error=TooFewSamplesError)
     if x.shape[0] < n_components:
-        raise TooFewSamplesError(f"{x.shape[0]} samples cannot support {n_components} components")
+        raise TooFewSamplesError(f"x has {x.shape[0]} samples, they cannot support n_components = {n_components}")
+    check_int(n_init, "n_init", low=1, high=MAX_RESTARTS)
+    check_int(max_iter, "max_iter", low=0, high=MAX_ITER)
+    check_int(kmeans_iter, "kmeans_iter", low=0, high=MAX_ITER)
+    check_float(tol, "tol", low=0.0)
+    check_float(reg_covar, "reg_covar", low=0.0)
+    check_generator(generator, where="EM")
 
 
 def fit_em(
@@ -173,10 +197,10 @@ def fit_em(
 
     Args:
         x: (N, d) samples, N >= n_components.
-        n_components: K >= 1.
+        n_components: K >= 1 (cost O(n_init max_iter N K d^2)).
         generator: torch generator on x's device (the only source of randomness).
-        n_init: number of k-means++ restarts; the one with the highest final objective is kept.
-        max_iter: EM iterations per restart.
+        n_init: number of k-means++ restarts in [1, 1000]; the one with the highest final objective is kept.
+        max_iter: EM iterations per restart, in [0, 100000] (0: the k-means++ / Lloyd initialisation).
         tol: convergence threshold on the per-sample objective.
         reg_covar: relative covariance regularisation (module docstring).
         kmeans_iter: Lloyd iterations after k-means++ seeding.
@@ -186,9 +210,11 @@ def fit_em(
 
     Raises:
         ShapeMismatchError, NonFiniteError: malformed ``x``.
-        TooFewSamplesError: fewer samples than components, or n_components < 1.
+        TooFewSamplesError: fewer samples than components.
+        InvalidArgumentError: a hyperparameter of the wrong type or out of range, or no generator.
     """
-    _check_em_args(x, n_components)
+    _check_em_args(x, n_components, n_init=n_init, max_iter=max_iter, tol=tol, reg_covar=reg_covar,
+                   kmeans_iter=kmeans_iter, generator=generator)  # fmt: skip
     rho = reg_covar * _data_scale(x)
     best: tuple[float, GMM] | None = None
     for _ in range(max(1, int(n_init))):
@@ -293,6 +319,28 @@ def bic(gmm: GMM, x: Tensor, *, n_effective: float | None = None) -> float:
     return -2.0 * (n_eff / N) * ll + p * math.log(n_eff)
 
 
+def check_k_range(k_range: Iterable[int], n_samples: int) -> list[int]:
+    """The sorted distinct candidates K of ``k_range`` that N = ``n_samples`` samples support (K <= N).
+
+    Raises:
+        InvalidArgumentError: not an iterable of integers >= 1, or more than 1000 candidates.
+        TooFewSamplesError: no candidate K <= N.
+    """
+    if isinstance(k_range, (str, bytes)) or not isinstance(k_range, Iterable):
+        raise InvalidArgumentError(f"k_range must be an iterable of integers >= 1, got {k_range!r}")
+    if isinstance(k_range, range) and len(k_range) > MAX_K_CANDIDATES or (
+        isinstance(k_range, Sequence) and len(k_range) > MAX_K_CANDIDATES
+    ):
+        raise InvalidArgumentError(f"k_range has {len(k_range)} candidates, at most {MAX_K_CANDIDATES} are allowed")
+    ks = sorted({check_int(k, "k_range entry", low=1) for k in k_range})
+    if len(ks) > MAX_K_CANDIDATES:
+        raise InvalidArgumentError(f"k_range has {len(ks)} candidates, at most {MAX_K_CANDIDATES} are allowed")
+    ks = [k for k in ks if k <= n_samples]
+    if not ks:
+        raise TooFewSamplesError(f"no candidate K in k_range = {k_range!r} is <= the {n_samples} samples")
+    return ks
+
+
 def fit_em_bic(
     x: Tensor,
     *,
@@ -309,7 +357,7 @@ def fit_em_bic(
 
     Args:
         x: (N, d) samples.
-        k_range: candidate numbers of components (values above N are skipped).
+        k_range: candidate numbers of components, integers >= 1, at most 1000 (values above N are skipped).
         generator: torch generator; the candidates are fitted in ascending K with it.
         n_init, max_iter, tol, reg_covar, kmeans_iter: as in :func:`fit_em`.
         n_effective: optional effective sample size for the effective-sample-size BIC (module docstring);
@@ -322,9 +370,7 @@ def fit_em_bic(
         TooFewSamplesError: no admissible K in ``k_range``.
     """
     check_samples(x, min_samples=1)
-    ks = sorted({int(k) for k in k_range if 1 <= int(k) <= x.shape[0]})
-    if not ks:
-        raise TooFewSamplesError(f"no admissible K in k_range for {x.shape[0]} samples")
+    ks = check_k_range(k_range, x.shape[0])
     best: tuple[float, GMM] | None = None
     for k in ks:
         gmm = fit_em(

@@ -7,7 +7,7 @@ velocities (EM, EM+BIC) accept and ignore ``x_dot``.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, fields
 
 import torch
@@ -18,6 +18,7 @@ from lfd_torch.gmm.damm import fit_damm
 from lfd_torch.gmm.em import fit_em, fit_em_bic
 from lfd_torch.gmm.model import GMM
 from lfd_torch.gmm.pcgmm import fit_pcgmm
+from lfd_torch.utils import check_generator
 
 __all__ = ["PCGMMFitter", "DAMMFitter", "EMFitter", "EMBICFitter"]
 
@@ -28,10 +29,7 @@ def _hyperparameters(fitter: object) -> dict[str, object]:
 
 
 def _check_generator(generator: object, fitter: str) -> None:
-    if not isinstance(generator, torch.Generator):
-        raise InvalidArgumentError(
-            f"{fitter} needs generator=torch.Generator() (every stochastic step is seeded), got {type(generator).__name__}"
-        )
+    check_generator(generator, where=fitter)
 
 
 @dataclass(frozen=True)
@@ -52,7 +50,7 @@ class PCGMMFitter:
     def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
         """Fit to positions x (N, d) and velocities x_dot (N, d) (required)."""
         if x_dot is None:
-            raise InvalidArgumentError("PC-GMM needs velocities x_dot")
+            raise InvalidArgumentError("PC-GMM needs velocities x_dot (N, d), got None")
         _check_generator(generator, "PCGMMFitter")
         return fit_pcgmm(x, x_dot, generator=generator, **_hyperparameters(self))
 
@@ -74,7 +72,7 @@ class DAMMFitter:
     def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
         """Fit to positions x (N, d) and velocities x_dot (N, d) (required)."""
         if x_dot is None:
-            raise InvalidArgumentError("DAMM needs velocities x_dot")
+            raise InvalidArgumentError("DAMM needs velocities x_dot (N, d), got None")
         _check_generator(generator, "DAMMFitter")
         return fit_damm(x, x_dot, generator=generator, **_hyperparameters(self))
 
@@ -110,7 +108,9 @@ class EMBICFitter:
     uses_velocities = False
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "k_range", tuple(int(k) for k in self.k_range))
+        if isinstance(self.k_range, (str, bytes)) or not isinstance(self.k_range, Iterable):
+            raise InvalidArgumentError(f"k_range must be a sequence of integers >= 1, got {self.k_range!r}")
+        object.__setattr__(self, "k_range", tuple(self.k_range))
 
     def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
         """Fit to positions x (N, d); ``x_dot`` is ignored."""

@@ -23,6 +23,7 @@ from torch import Tensor
 
 from lfd_torch.errors import InvalidGMMError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
 from lfd_torch.gmm.gaussian import gaussian_log_normalizer
+from lfd_torch.utils import check_generator, check_int, check_tensor
 
 __all__ = ["GMM", "InvalidGMMError", "check_samples"]
 
@@ -42,28 +43,20 @@ def check_samples(x: Tensor, x_dot: Tensor | None = None, *, min_samples: int = 
     Raises:
         ShapeMismatchError: ``x`` is not 2-D, ``x_dot`` differs in shape, dtype or device, or d == 0.
         TooFewSamplesError: N < ``min_samples``.
-        NonFiniteError: NaN or Inf in ``x`` or ``x_dot``.
+        NonFiniteError: NaN, Inf or an overflowing magnitude (:func:`lfd_torch.utils.safe_magnitude`) in ``x`` or
+            ``x_dot``.
     """
-    if not isinstance(x, Tensor):
-        raise ShapeMismatchError(f"{name} must be a torch.Tensor of shape (N, d), got {type(x).__name__}")
-    if x.ndim != 2 or x.shape[1] == 0:
+    check_tensor(x, name, ndim=2, shape_hint="(N, d)")
+    if x.shape[1] == 0:
         raise ShapeMismatchError(f"{name} must have shape (N, d) with d >= 1, got {tuple(x.shape)}")
-    if not x.is_floating_point():
-        raise ShapeMismatchError(f"{name} must be floating point, got {x.dtype}")
     if x.shape[0] < min_samples:
         raise TooFewSamplesError(f"{name} has {x.shape[0]} samples, at least {min_samples} are needed")
-    if not torch.isfinite(x).all():
-        raise NonFiniteError(f"{name} contains NaN or Inf")
+    check_tensor(x, name)
     if x_dot is not None:
         if not isinstance(x_dot, Tensor) or x_dot.shape != x.shape:
             shape = tuple(x_dot.shape) if isinstance(x_dot, Tensor) else type(x_dot).__name__
             raise ShapeMismatchError(f"x_dot must have the shape of {name} {tuple(x.shape)}, got {shape}")
-        if x_dot.dtype != x.dtype or x_dot.device != x.device:
-            raise ShapeMismatchError(
-                f"x_dot is {x_dot.dtype} on {x_dot.device}, {name} is {x.dtype} on {x.device}"
-            )
-        if not torch.isfinite(x_dot).all():
-            raise NonFiniteError("x_dot contains NaN or Inf")
+        check_tensor(x_dot, "x_dot", dtype=x.dtype, device=x.device)
 
 
 @dataclass(frozen=True, eq=False)
@@ -159,14 +152,9 @@ class GMM:
 
     # ------------------------------------------------------------------ densities
     def _check_points(self, x: Tensor) -> None:
-        if not isinstance(x, Tensor) or x.ndim == 0 or x.shape[-1] != self.dim:
-            shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
-            raise ShapeMismatchError(f"points must have shape (..., {self.dim}), got {shape}")
-        if x.dtype != self.dtype or x.device != self.device:
-            raise ShapeMismatchError(
-                f"points are {x.dtype} on {x.device}, the GMM is {self.dtype} on {self.device}; "
-                "convert one with .to(dtype=..., device=...)"
-            )
+        """x (..., d) in the GMM's dtype and device, finite and below the overflow magnitude."""
+        check_tensor(x, "x", min_ndim=1, last_dim=self.dim, dtype=self.dtype, device=self.device,
+                     shape_hint=f"(..., {self.dim})")  # fmt: skip
 
     def mahalanobis_sq(self, x: Tensor) -> Tensor:
         """Squared Mahalanobis distances (x - mu_k)^T Sigma_k^-1 (x - mu_k).
@@ -186,7 +174,7 @@ class GMM:
         """Joint log densities log pi_k + log N(x; mu_k, Sigma_k).
 
         Args:
-            x: (..., d) points, same dtype and device as the GMM. NaN entries propagate to NaN outputs.
+            x: (..., d) points, same dtype and device as the GMM (NaN, Inf or overflowing entries raise).
 
         Returns:
             (..., K) tensor; -inf for components with zero weight.
@@ -222,12 +210,14 @@ class GMM:
         """Draw ``n`` samples.
 
         Args:
-            n: number of samples.
+            n: number of samples, in [0, 10^8] (memory n d floats).
             generator: torch generator on the GMM's device.
 
         Returns:
             x (n, d) samples and their component labels (n,) int64.
         """
+        check_int(n, "n", low=0, high=10**8)
+        check_generator(generator)
         labels = torch.multinomial(self.weights, n, replacement=True, generator=generator)
         eps = torch.randn(n, self.dim, dtype=self.dtype, device=self.device, generator=generator)
         x = self.means[labels] + torch.einsum("nij,nj->ni", self._chol[labels], eps)

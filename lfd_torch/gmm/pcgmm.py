@@ -62,9 +62,11 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from torch import Tensor
 
+from lfd_torch.errors import ShapeMismatchError
 from lfd_torch.gmm.model import GMM, InvalidGMMError, _gmm_from_dense_labels, check_samples
 from lfd_torch.gmm.niw import NIWPrior, niw_log_marginal_likelihood, niw_log_marginal_normalizer
 from lfd_torch.gmm.postprocess import merge_small_components
+from lfd_torch.utils import check_cost, check_float, check_generator, check_int
 
 __all__ = [
     "fit_pcgmm", "pcgmm_labels", "PCGMMResult", "prior_weights", "default_length_scale", "MIN_SAMPLES_PCGMM",
@@ -72,6 +74,10 @@ __all__ = [
 ]
 
 MIN_SAMPLES_PCGMM = 3
+
+#: Bounds that keep the sampler's cost finite: Gibbs sweeps, and samples it keeps (M^2 similarities).
+MAX_SWEEPS = 10_000
+MAX_SAMPLER_POINTS = 10_000
 
 #: Default similarity length scale as a multiple of the RMS distance of the samples to their mean (module docstring).
 LENGTH_SCALE_FACTOR = 0.25
@@ -359,24 +365,32 @@ def pcgmm_labels(
         length_scale: similarity length scale in data units (None: :func:`default_length_scale`).
         alpha: ddCRP self-link weight (> 0); larger values give more clusters.
         kappa0, nu0_offset, psi_scale: NIW prior (standardised coordinates).
-        n_iter: Gibbs sweeps.
+        n_iter: Gibbs sweeps, in [1, 10000]; each costs O(M^2) for the M <= max_points retained samples.
         min_cluster_size: clusters smaller than this are merged into the nearest one
             (None: max(3, 1 % of N)).
-        max_points: coarsen to at most this many samples for the sampler (None: no coarsening).
+        max_points: coarsen to at most this many samples for the sampler, in [3, 10000] (None: no coarsening; N
+            must then be <= 10000, since the similarities take M^2 floats).
 
     Returns:
         :class:`PCGMMResult`.
+
+    Raises:
+        ShapeMismatchError, NonFiniteError, TooFewSamplesError: malformed ``x`` or ``x_dot``.
+        InvalidArgumentError: a hyperparameter of the wrong type or out of range, or no generator.
     """
+    if x_dot is None:
+        raise ShapeMismatchError("x_dot (N, d) velocities are required, got None")
     check_samples(x, x_dot, min_samples=MIN_SAMPLES_PCGMM)
+    check_generator(generator, where="PC-GMM")
     for name, v in (("alpha", alpha), ("kappa0", kappa0), ("psi_scale", psi_scale), ("nu0_offset", nu0_offset)):
-        if not float(v) > 0:
-            raise InvalidGMMError(f"{name} must be positive, got {v}")
-    if int(n_iter) < 1:
-        raise InvalidGMMError(f"n_iter must be >= 1, got {n_iter}")
-    if max_points is not None and int(max_points) < MIN_SAMPLES_PCGMM:
-        raise InvalidGMMError(f"max_points must be >= {MIN_SAMPLES_PCGMM}, got {max_points}")
-    if length_scale is not None and not float(length_scale) > 0:
-        raise InvalidGMMError(f"length_scale must be positive, got {length_scale}")
+        check_float(v, name, low=0.0, low_open=True, error=InvalidGMMError)
+    check_int(n_iter, "n_iter", low=1, high=MAX_SWEEPS, error=InvalidGMMError)
+    check_int(max_points, "max_points", low=MIN_SAMPLES_PCGMM, high=MAX_SAMPLER_POINTS, allow_none=True,
+              error=InvalidGMMError)  # fmt: skip
+    check_int(min_cluster_size, "min_cluster_size", low=1, allow_none=True, error=InvalidGMMError)
+    check_float(length_scale, "length_scale", low=0.0, low_open=True, allow_none=True, error=InvalidGMMError)
+    n_kept = x.shape[0] if max_points is None else min(x.shape[0], max_points)
+    check_cost("max_points", float(n_kept) ** 2, float(MAX_SAMPLER_POINTS) ** 2, "pairwise similarities")
     N, d = x.shape
     xc = x.detach().to(device="cpu", dtype=torch.float64)
     vc = x_dot.detach().to(device="cpu", dtype=torch.float64)
@@ -454,6 +468,7 @@ def fit_pcgmm(
         ShapeMismatchError, NonFiniteError, TooFewSamplesError: malformed input.
         InvalidGMMError: invalid hyperparameters.
     """
+    check_float(reg_covar, "reg_covar", low=0.0, error=InvalidGMMError)
     res = pcgmm_labels(
         x, x_dot, generator=generator, length_scale=length_scale, alpha=alpha, kappa0=kappa0,
         nu0_offset=nu0_offset, psi_scale=psi_scale, n_iter=n_iter, min_cluster_size=min_cluster_size,

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.utils import safe_magnitude
 
 __all__ = ["as_trajectories", "check_finite", "check_lengths", "resolve_mask"]
 
@@ -51,7 +52,10 @@ def check_lengths(lengths: Tensor | None, B: int, T: int, device: torch.device, 
     """
     if lengths is None:
         return torch.full((B,), T, dtype=torch.long, device=device)
-    lengths = torch.as_tensor(lengths, device=device)
+    try:
+        lengths = torch.as_tensor(lengths, device=device)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise InvalidArgumentError(f"{name} must be a (B,) integer tensor, got {lengths!r}") from exc
     if lengths.is_floating_point() or lengths.is_complex() or lengths.dtype == torch.bool:
         raise InvalidArgumentError(f"{name} must be an integer tensor, got {lengths.dtype}")
     if lengths.shape != (B,):
@@ -78,6 +82,7 @@ def resolve_mask(
     """
     if mask is not None and lengths is not None:
         raise InvalidArgumentError("give either mask or lengths, not both")
+    mask_given = mask is not None
     if mask is None:
         n = check_lengths(lengths, B, T, device)
         mask = torch.arange(T, device=device).unsqueeze(0) < n.unsqueeze(1)
@@ -90,14 +95,18 @@ def resolve_mask(
     counts = mask.sum(1)
     if (counts < min_samples).any():
         i = int(torch.nonzero(counts < min_samples)[0])
-        raise TooFewSamplesError(f"has {int(counts[i])} valid samples, at least {min_samples} are needed", i)
+        source = "mask" if mask_given else ("lengths" if lengths is not None else "the padded length T")
+        raise TooFewSamplesError(f"has {int(counts[i])} valid samples (from {source}), at least {min_samples} are "
+                                 "needed", i)  # fmt: skip
     return mask
 
 
 def check_finite(name: str, x: Tensor, mask: Tensor) -> None:
-    """Raise :class:`NonFiniteError` if ``x`` (B, T, d) holds NaN or Inf at a sample where ``mask`` (B, T) is True."""
-    bad = (~torch.isfinite(x)).any(-1) & mask
+    """Raise :class:`NonFiniteError` if ``x`` (B, T, d) holds NaN, Inf or a magnitude above
+    :func:`lfd_torch.utils.safe_magnitude` (its squares overflow) at a sample where ``mask`` (B, T) is True."""
+    bad = (~(x.abs() <= safe_magnitude(x.dtype))).any(-1) & mask
     if bad.any():
         i, t = (int(v) for v in torch.nonzero(bad)[0])
-        what = "NaN" if torch.isnan(x[i, t]).any() else "Inf"
+        what = "NaN" if torch.isnan(x[i, t]).any() else ("Inf" if torch.isinf(x[i, t]).any() else "a magnitude "
+                                                          f"above {safe_magnitude(x.dtype):.3g} (it overflows)")
         raise NonFiniteError(f"{name} contains {what} at sample {t}", i)

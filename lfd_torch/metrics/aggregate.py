@@ -13,7 +13,8 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import InvalidArgumentError, InvalidDemoError, NonFiniteError, ShapeMismatchError, TooFewSamplesError, UnknownNameError
+from lfd_torch.utils import check_tensor
+from lfd_torch.errors import InvalidDemoError, NonFiniteError, ShapeMismatchError, TooFewSamplesError, UnknownNameError
 
 __all__ = ["AGGREGATE_KINDS", "aggregate"]
 
@@ -48,14 +49,18 @@ def aggregate(
     """
     if kind not in AGGREGATE_KINDS:
         raise UnknownNameError("aggregate kind", kind, AGGREGATE_KINDS)
-    if values.ndim != 1:
-        raise ShapeMismatchError(f"values must have shape (B,), got {tuple(values.shape)}")
+    check_tensor(values, "values", ndim=1, finite=False, shape_hint="(B,)")
     if values.numel() == 0:
-        raise TooFewSamplesError("nothing to aggregate")
+        raise TooFewSamplesError("values is empty: nothing to aggregate")
     if counts is None:
         w = torch.ones_like(values)
     else:
-        counts = torch.as_tensor(counts, device=values.device)
+        try:
+            counts = torch.as_tensor(counts, device=values.device)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise ShapeMismatchError(f"counts must be a (B,) tensor, got {counts!r}") from exc
+        if counts.is_complex() or counts.dtype == torch.bool:
+            raise ShapeMismatchError(f"counts must be a real (B,) tensor, got {counts.dtype}")
         if counts.shape != values.shape:
             raise ShapeMismatchError(f"counts have shape {tuple(counts.shape)}, values {tuple(values.shape)}")
         w = counts.to(values.dtype)
@@ -63,9 +68,11 @@ def aggregate(
             raise InvalidDemoError("counts must be non-negative", int(torch.nonzero(w < 0)[0]))
         if not w.sum() > 0:
             raise TooFewSamplesError("counts sum to zero")
+        if not bool(torch.isfinite(w).all()):
+            raise NonFiniteError("counts contain NaN or Inf")
     bad = ~torch.isfinite(values) & (w > 0)
     if bad.any():
-        raise NonFiniteError("value is not finite", int(torch.nonzero(bad)[0]))
+        raise NonFiniteError("values: a value with a positive weight is not finite", int(torch.nonzero(bad)[0]))
     x = values.square() if kind == "rms" else values
     zero = torch.zeros((), dtype=values.dtype, device=values.device)
     pooled = torch.where(w > 0, w * x, zero).sum() / w.sum()

@@ -95,7 +95,7 @@ def dtw_distance(
         return a.new_zeros(0)
     for name, n in (("a", la), ("b", lb)):
         if (n < 1).any():
-            raise TooFewSamplesError(f"{name} has no valid sample", int(torch.nonzero(n < 1)[0]))
+            raise TooFewSamplesError(f"{name} has no valid sample (lengths_{name} = 0)", int(torch.nonzero(n < 1)[0]))
     mask_a = torch.arange(Ta, device=device).unsqueeze(0) < la.unsqueeze(1)
     mask_b = torch.arange(Tb, device=device).unsqueeze(0) < lb.unsqueeze(1)
     check_finite("a", a, mask_a)

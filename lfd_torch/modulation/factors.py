@@ -85,6 +85,14 @@ def small_scale_factor(h2: Tensor, h2_ref: Tensor | float) -> Tensor:
     Returns:
         (...) factors in [0, 1]; exactly 1 where h2 <= h2_ref.
     """
+    if not isinstance(h2, Tensor) or h2.is_complex() or not h2.is_floating_point():
+        raise InvalidArgumentError(f"h2 must be a real floating tensor, got {getattr(h2, 'dtype', type(h2).__name__)}")
+    if not isinstance(h2_ref, Tensor):  # a Python number is checked here; tensors (the engine's) are not synced
+        from lfd_torch.utils import check_float
+
+        check_float(h2_ref, "h2_ref", allow_inf=True)
+    elif h2_ref.is_complex() or not h2_ref.is_floating_point():
+        raise InvalidArgumentError(f"h2_ref must be a real floating tensor or a number, got {h2_ref.dtype}")
     ref = torch.as_tensor(h2_ref, dtype=h2.dtype, device=h2.device)
     inside = h2 <= ref
     gap = torch.where(inside, torch.zeros_like(h2), ref - h2)  # <= 0, never inf - inf

@@ -38,6 +38,21 @@ class GoalDirection(NamedTuple):
 
 
 def goal_direction(x: Tensor, attractor: Tensor, *, dim: int = -1) -> GoalDirection:
+    """:func:`goal_direction_unchecked` after checking x (..., d) and attractor (d,): real floating tensors of one
+    dtype, finite and below the overflow magnitude (a typed error names the argument)."""
+    from lfd_torch.errors import ShapeMismatchError
+    from lfd_torch.utils import check_tensor
+
+    check_tensor(x, "x", min_ndim=1)
+    check_tensor(attractor, "attractor", min_ndim=1, dtype=x.dtype, device=x.device)
+    if dim not in (-1, x.ndim - 1) or attractor.ndim != 1:  # feature-major calls are the kernel's, unchecked
+        return goal_direction_unchecked(x, attractor, dim=dim)
+    if attractor.shape[0] != x.shape[-1]:
+        raise ShapeMismatchError(f"x has d = {x.shape[-1]}, attractor has shape {tuple(attractor.shape)}")
+    return goal_direction_unchecked(x, attractor, dim=dim)
+
+
+def goal_direction_unchecked(x: Tensor, attractor: Tensor, *, dim: int = -1) -> GoalDirection:
     """First column of W (eq. 11) and the distance to the goal.
 
     Args:

@@ -68,7 +68,7 @@ from torch import Tensor
 from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError, UnknownNameError
 from lfd_torch.modulation.entropy import reference_entropy, renyi_entropy
 from lfd_torch.modulation.factors import check_lambda_limit, large_scale_gain, small_scale_factor
-from lfd_torch.modulation.matrix import goal_direction, radial_component
+from lfd_torch.modulation.matrix import goal_direction_unchecked, radial_component
 
 __all__ = [
     "DEFAULT_LAMBDA_LIMIT",
@@ -145,9 +145,11 @@ def _check_vectors(x: Any, f: Any, attractor: Any) -> None:
     for name, t in (("f", f), ("attractor", attractor)):
         if t.dtype != x.dtype or t.device != x.device:
             raise ShapeMismatchError(f"{name} is {t.dtype} on {t.device}, x is {x.dtype} on {x.device}")
+    from lfd_torch.utils import safe_magnitude
+
     for name, t in (("x", x), ("f", f), ("attractor", attractor)):
-        if not torch.isfinite(t).all():
-            raise NonFiniteError(f"{name} contains NaN or Inf")
+        if not bool((t.abs() <= safe_magnitude(t.dtype)).all()):
+            raise NonFiniteError(f"{name} contains NaN, Inf or a magnitude above {safe_magnitude(t.dtype):.3g}")
 
 
 def _as_batch(value: Any, name: str, x: Tensor, mode: str) -> Tensor:
@@ -252,7 +254,7 @@ def modulated_velocity_unchecked(
     if mode == "none":
         return ModulationResult(f.clone(), branch)
 
-    unit, r = goal_direction(x, attractor, dim=dim)
+    unit, r = goal_direction_unchecked(x, attractor, dim=dim)
     c = radial_component(f, unit, dim=dim)
     norm_f = torch.linalg.vector_norm(f, dim=dim) if dim == x.ndim - 1 else (f * f).sum(dim).sqrt()
     a = torch.maximum(c.abs(), radial_floor * norm_f)  # floored radial magnitude
@@ -362,6 +364,8 @@ class Modulation:
             InvalidArgumentError: ``h2_ref`` missing while ``entropy_quantile`` is set, or a density missing.
             ShapeMismatchError, NonFiniteError: see :func:`modulated_velocity`.
         """
+        if not callable(primitive) or not isinstance(getattr(primitive, "attractor", None), Tensor):
+            raise InvalidArgumentError(f"primitive must be a StablePrimitive, got {type(primitive).__name__}")
         if self.mode == "none" and f is not None:
             return modulated_velocity(x, f, primitive.attractor, mode="none")
         if f is None:

@@ -6,7 +6,10 @@ from dataclasses import dataclass
 
 from lfd_torch.data.demos import Demos
 from lfd_torch.errors import InvalidArgumentError, UnknownNameError
+from lfd_torch.utils import check_int
 from lfd_torch.preprocess.regularize import (
+    MAX_SAMPLES,
+    MAX_WINDOW,
     estimate_velocities,
     resample,
     screen_dimensions,
@@ -18,10 +21,10 @@ from lfd_torch.preprocess.regularize import (
 __all__ = ["Preprocess"]
 
 
-def _int_at_least(value: object, low: int, name: str, *, odd: bool = False) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < low or (odd and value % 2 == 0):
-        what = f"an {'odd ' if odd else ''}integer >= {low}"
-        raise InvalidArgumentError(f"{name} must be {what}, got {value!r}")
+def _int_at_least(value: object, low: int, name: str, *, odd: bool = False, high: int | None = None) -> None:
+    check_int(value, name, low=low, high=high)
+    if odd and value % 2 == 0:  # type: ignore[operator]
+        raise InvalidArgumentError(f"{name} must be an odd integer >= {low}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -62,12 +65,12 @@ class Preprocess:
         if (self.trim_position_tol is None) != (self.trim_velocity_tol is None):
             raise InvalidArgumentError("set both trim_position_tol and trim_velocity_tol, or neither")
         # argument ranges are checked here, at construction, not only when a step happens to run
-        _int_at_least(self.window, 1, "window", odd=True)
+        _int_at_least(self.window, 1, "window", odd=True, high=MAX_WINDOW)
         _int_at_least(self.polyorder, 0, "polyorder")
         if self.smoothing == "savgol" and self.window > 1 and self.polyorder >= self.window:
             raise InvalidArgumentError(f"polyorder ({self.polyorder}) must be smaller than window ({self.window})")
         if self.n_samples is not None:
-            _int_at_least(self.n_samples, 3, "n_samples")
+            _int_at_least(self.n_samples, 3, "n_samples", high=MAX_SAMPLES)
         if self.resample_mode not in ("time", "arc_length"):
             raise UnknownNameError("resample_mode", self.resample_mode, ("time", "arc_length"))
         _int_at_least(self.subsample_step, 1, "subsample_step")
@@ -80,6 +83,9 @@ class Preprocess:
             raise InvalidArgumentError(f"screen_threshold must be a number in [0, 1) or None, got {v!r}")
 
     def __call__(self, demos: Demos) -> Demos:
+        """Apply the steps to ``demos`` (a :class:`~lfd_torch.data.Demos`); returns a new set."""
+        if not isinstance(demos, Demos):
+            raise InvalidArgumentError(f"demos must be a lfd_torch.data.Demos, got {type(demos).__name__}")
         changed = False
         if self.n_samples is not None:
             demos, changed = resample(demos, self.n_samples, self.resample_mode), True

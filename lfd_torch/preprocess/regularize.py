@@ -16,6 +16,7 @@ from torch import Tensor
 from lfd_torch.data.demos import MIN_SAMPLES, Demos
 from lfd_torch.data.finite_difference import finite_difference
 from lfd_torch.errors import InvalidArgumentError, TooFewSamplesError, UnknownNameError
+from lfd_torch.utils import check_choice, check_cost, check_float, check_int
 
 __all__ = [
     "moving_average",
@@ -32,8 +33,21 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
+#: Bounds that keep the cost finite: smoothing window and resampled length (samples).
+MAX_WINDOW = 100_001
+MAX_SAMPLES = 1_000_000
+
+
+def _check_demos(demos: object) -> Demos:
+    if not isinstance(demos, Demos):
+        raise InvalidArgumentError(f"demos must be a lfd_torch.data.Demos, got {type(demos).__name__}")
+    return demos
+
+
 def _check_window(window: int, demos: Demos) -> None:
-    if window < 1 or window % 2 == 0:
+    _check_demos(demos)
+    check_int(window, "window", low=1, high=MAX_WINDOW)
+    if window % 2 == 0:
         raise InvalidArgumentError(f"window must be a positive odd number of samples, got {window}")
     if window > int(demos.lengths.min()):
         i = int(torch.argmin(demos.lengths))
@@ -94,6 +108,7 @@ def savitzky_golay(demos: Demos, window: int, polyorder: int = 3, *, recompute_v
     reflection, so each demonstration keeps its start and end point (scipy's modes move the end point, i.e. the goal).
     """
     _check_window(window, demos)
+    check_int(polyorder, "polyorder", low=0)
     if polyorder >= window:
         raise InvalidArgumentError(f"polyorder ({polyorder}) must be smaller than window ({window})")
     if window == 1:
@@ -104,6 +119,7 @@ def savitzky_golay(demos: Demos, window: int, polyorder: int = 3, *, recompute_v
 
 def smooth(demos: Demos, window: int, method: str = "savgol", polyorder: int = 3) -> Demos:
     """Window smoothing by ``method`` in {"savgol", "moving_average"}; velocities are re-estimated."""
+    _check_demos(demos)
     if method == "savgol":
         return savitzky_golay(demos, window, polyorder)
     if method == "moving_average":
@@ -152,15 +168,19 @@ def resample(demos: Demos, n_samples: int, mode: str = "time") -> Demos:
 
     Args:
         demos: input set.
-        n_samples: common length of the output (>= 3).
+        n_samples: common length of the output, in [3, 1000000] (memory: B n_samples (d + 1) floats).
         mode: ``"time"`` (uniform in time between each demonstration's first and last time stamp) or
             ``"arc_length"`` (uniform along the path length; time stamps are interpolated too, so the timing of the
             demonstration is kept).
     Returns:
         Demos with lengths all ``n_samples``; velocities re-estimated by central differences.
     """
+    _check_demos(demos)
+    check_int(n_samples, "n_samples", high=MAX_SAMPLES)
     if n_samples < MIN_SAMPLES:
         raise TooFewSamplesError(f"n_samples must be >= {MIN_SAMPLES}, got {n_samples}")
+    check_choice(mode, "resample mode", ("time", "arc_length"))
+    check_cost("n_samples", float(demos.n_demos) * n_samples * (demos.dim + 1), 2e8, "resampled values")
     B = demos.n_demos
     u = torch.linspace(0, 1, n_samples, dtype=demos.dtype, device=demos.device).unsqueeze(0)  # (1, Q)
     rows = torch.arange(B, device=demos.device)
@@ -196,8 +216,8 @@ def subsample(demos: Demos, step: int, *, keep_last: bool = True) -> Demos:
 
     Velocities are taken from the input at the kept samples (not re-estimated).
     """
-    if step < 1:
-        raise InvalidArgumentError(f"step must be >= 1, got {step}")
+    _check_demos(demos)
+    check_int(step, "step", low=1)
     if step == 1:
         return demos
     L = demos.lengths
@@ -223,7 +243,7 @@ def subsample(demos: Demos, step: int, *, keep_last: bool = True) -> Demos:
 
 def dimension_shares(demos: Demos) -> Tensor:
     """(d,) share of each dimension in the total variance of all valid positions (sums to 1)."""
-    x, _, _ = demos.samples()
+    x, _, _ = _check_demos(demos).samples()
     var = x.var(dim=0, unbiased=False)
     total = var.sum()
     if total <= 0:
@@ -240,8 +260,8 @@ def screen_dimensions(
     returns the (d_kept,) long tensor of kept dimension indices, to map results back to the full space.
     At least one dimension is always kept (the one with the largest variance).
     """
-    if not 0 <= threshold < 1:
-        raise InvalidArgumentError(f"threshold must lie in [0, 1), got {threshold}")
+    _check_demos(demos)
+    check_float(threshold, "threshold", low=0.0, high=1.0, high_open=True)
     shares = dimension_shares(demos)
     keep = shares >= threshold
     keep[torch.argmax(shares)] = True
@@ -267,6 +287,7 @@ def screen_dimensions(
 
 def estimate_velocities(demos: Demos, scheme: str = "central") -> Demos:
     """Replace the velocities by finite differences of the positions (see :func:`finite_difference`)."""
+    _check_demos(demos)
     return demos.replace(velocities=finite_difference(demos.positions, demos.times, demos.lengths, scheme))
 
 
@@ -278,8 +299,9 @@ def trim_still_tail(demos: Demos, position_tol: float, velocity_tol: float) -> D
     (the demonstration then ends where it first came to rest at the goal). At least ``MIN_SAMPLES`` are kept.
     Units: those of the data (LASA: mm and mm/s).
     """
-    if position_tol < 0 or velocity_tol < 0:
-        raise InvalidArgumentError("tolerances must be non-negative")
+    _check_demos(demos)
+    check_float(position_tol, "position_tol", low=0.0)
+    check_float(velocity_tol, "velocity_tol", low=0.0)
     dist = (demos.positions - demos.attractor).norm(dim=-1)
     speed = demos.velocities.norm(dim=-1)
     moving = ~((dist <= position_tol) & (speed <= velocity_tol)) & demos.mask

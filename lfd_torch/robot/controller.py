@@ -34,7 +34,10 @@ def _positive(value: float, name: str, allow_zero: bool = True) -> float:
 
 
 def _vec7(values, name: str, dtype=torch.float64) -> torch.Tensor:
-    t = torch.as_tensor(values, dtype=dtype).reshape(-1)
+    try:
+        t = torch.as_tensor(values, dtype=dtype).reshape(-1)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ShapeMismatchError(f"{name} must be 7 real numbers (or 1), got {values!r}") from exc
     if t.numel() == 1:
         t = t.expand(7).clone()
     if t.shape != (7,):
@@ -112,8 +115,8 @@ class DLSVelocityMap:
         self.limit_gain = _positive(limit_gain, "limit_gain")
         self.limit_buffer = _positive(limit_buffer, "limit_buffer")
         self.orientation_weight = _positive(orientation_weight, "orientation_weight", allow_zero=False)
-        if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
-            raise InvalidArgumentError(f"iterations must be an int >= 1, got {iterations!r}")
+        if isinstance(iterations, bool) or not isinstance(iterations, int) or not 1 <= iterations <= 100:
+            raise InvalidArgumentError(f"iterations must be an int in [1, 100] (saturation passes), got {iterations!r}")
         self.iterations = iterations
         p = self.arm.neutral() if posture is None else torch.as_tensor(posture, dtype=torch.float64)
         self.posture = self.arm.check_limits(p.reshape(7), "posture")

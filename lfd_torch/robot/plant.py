@@ -288,8 +288,26 @@ def baxter_mjcf(
     return "\n".join(out) + "\n"
 
 
+def _real_array(value, name: str) -> np.ndarray:
+    """``value`` (array-like or tensor) as a float64 numpy array; complex, strings and objects raise, naming it."""
+    if hasattr(value, "detach"):  # a torch tensor
+        if value.is_complex():
+            raise ShapeMismatchError(f"{name} must hold real numbers, got {value.dtype}")
+        value = value.detach().cpu().numpy()
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise ShapeMismatchError(f"{name} is not a real array: {exc}") from exc
+    if arr.dtype.kind not in "fiu":
+        raise ShapeMismatchError(f"{name} must hold real numbers, got {value!r}")
+    return arr.astype(float)
+
+
 def _gains(values, name: str) -> tuple[float, ...]:
-    vals = tuple(float(v) for v in np.broadcast_to(np.asarray(values, dtype=float), (N,)))
+    arr = _real_array(values, name)
+    if arr.shape not in ((), (1,), (N,)):
+        raise ShapeMismatchError(f"{name} must have {N} entries (or 1), got shape {arr.shape}")
+    vals = tuple(float(v) for v in np.broadcast_to(arr, (N,)))
     if not all(math.isfinite(v) and v >= 0 for v in vals):
         raise InvalidArgumentError(f"{name} must be 7 finite values >= 0, got {values!r}")
     return vals
@@ -390,8 +408,8 @@ class BaxterPlant:
         """Set the arm to ``q`` (7,) rad (default the neutral pose), ``qd`` (7,) rad/s (default 0), hold ``q``."""
         from lfd_torch.robot.arm import NEUTRAL_POSE
 
-        q = np.array(NEUTRAL_POSE if q is None else q, dtype=float)
-        qd = np.zeros(N) if qd is None else np.asarray(qd, dtype=float)
+        q = np.array(NEUTRAL_POSE, dtype=float) if q is None else _real_array(q, "q")
+        qd = np.zeros(N) if qd is None else _real_array(qd, "qd")
         self._check7(q, "q")
         self._check7(qd, "qd")
         bad = (q < self.lower - 1e-9) | (q > self.upper + 1e-9)
@@ -431,7 +449,7 @@ class BaxterPlant:
     def set_command(self, q_d, qd_d) -> None:
         """Impedance set-point: desired joint angles ``q_d`` (7,) rad and velocities ``qd_d`` (7,) rad/s (clamped
         by MuJoCo to the joint range and the velocity limits)."""
-        q_d, qd_d = np.asarray(q_d, dtype=float), np.asarray(qd_d, dtype=float)
+        q_d, qd_d = _real_array(q_d, "q_d"), _real_array(qd_d, "qd_d")
         self._check7(q_d, "q_d")
         self._check7(qd_d, "qd_d")
         self._setpoint = q_d.copy()
@@ -441,7 +459,10 @@ class BaxterPlant:
     def step(self, n_substeps: int | None = None) -> None:
         """Advance ``n_substeps`` physics steps (default one control period) with the current set-point, then
         update the kinematics so that :meth:`tip_position` and the contacts are those of the new state."""
-        n = self.n_substeps if n_substeps is None else int(n_substeps)
+        from lfd_torch.utils import check_int
+
+        # bound: 10^6 substeps (1000 s of simulated time at the default 1 kHz) keeps one call finite
+        n = self.n_substeps if n_substeps is None else check_int(n_substeps, "n_substeps", low=1, high=10**6)
         if self.interpolate:
             qd_d = self.data.ctrl[N:].copy()
             for k in range(n):
@@ -551,10 +572,14 @@ class BaxterPlant:
         until :meth:`clear_forces`."""
         if body not in self.body_ids:
             raise UnknownNameError("body", body, tuple(self.body_ids))
-        f = np.asarray(force, dtype=float)
-        t = np.zeros(3) if torque is None else np.asarray(torque, dtype=float)
+        from lfd_torch.errors import NonFiniteError
+
+        f = _real_array(force, "force")
+        t = np.zeros(3) if torque is None else _real_array(torque, "torque")
         if f.shape != (3,) or t.shape != (3,):
             raise ShapeMismatchError(f"force and torque must have shape (3,), got {f.shape}, {t.shape}")
+        if not (np.abs(f) <= 1e6).all() or not (np.abs(t) <= 1e6).all():  # NaN fails too
+            raise NonFiniteError(f"force and torque must be finite, below 1e6 N (N m), got {f.tolist()}, {t.tolist()}")
         self.data.xfrc_applied[self.body_ids[body]] = np.concatenate([f, t])
 
     def clear_forces(self) -> None:

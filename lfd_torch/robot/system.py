@@ -50,6 +50,10 @@ def build_robot(
         scene: :class:`~lfd_torch.robot.plant.Scene` fields (nested mapping). velocity_map: keyword arguments
             of :class:`~lfd_torch.robot.controller.DLSVelocityMap` (except ``arm``).
     """
+    if velocity_map is not None and not isinstance(velocity_map, Mapping):
+        from lfd_torch.errors import InvalidArgumentError
+
+        raise InvalidArgumentError(f"velocity_map must be a mapping of DLSVelocityMap options or None, got {velocity_map!r}")
     spec = dict(velocity_map or {})
     unknown = set(spec) - set(_VELOCITY_KEYS)
     if unknown:

@@ -239,8 +239,10 @@ class Segmentation:
             raise ShapeMismatchError(f"x has shape {tuple(x.shape)}, the segmentation needs (..., {self.dim})")
         if not x.dtype.is_floating_point:
             raise InvalidArgumentError(f"x must hold real floating-point numbers, got {x.dtype}")
-        if not bool(torch.isfinite(x).all()):
-            raise NonFiniteError("x contains NaN or Inf")
+        from lfd_torch.utils import safe_magnitude
+
+        if not bool((x.abs() <= safe_magnitude(x.dtype)).all()):  # squared distances of larger x overflow
+            raise NonFiniteError(f"x contains NaN, Inf or a magnitude above {safe_magnitude(x.dtype):.3g}")
         lead = x.shape[:-1]
         flat = x.reshape(-1, self.dim).to(self.space_mean)
         bank, index, logw = self._density_tables

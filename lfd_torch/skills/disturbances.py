@@ -135,15 +135,26 @@ def random_pushes(
     Raises:
         InvalidArgumentError: a count, window or magnitude out of range. UnknownNameError: an unknown kind.
     """
+    from lfd_torch.utils import check_cost, check_float, check_generator, check_int
+
+    check_generator(generator)
     for name, v, lo in (("n_rows", n_rows, 1), ("n_pushes", n_pushes, 0), ("n_candidates", n_candidates, 1)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-            raise InvalidArgumentError(f"{name} must be an int >= {lo}, got {v!r}")
-    first, last = (int(w) for w in window)
-    if first < 1 or last - first + 1 < n_pushes:
-        raise InvalidArgumentError(f"window {window!r} must start at >= 1 and hold {n_pushes} distinct samples")
-    lo_m, hi_m = (float(v) for v in magnitude)
+        check_int(v, name, low=lo, high=10**6)
+    if isinstance(window, (str, bytes)) or not isinstance(window, Sequence) or len(window) != 2:
+        raise InvalidArgumentError(f"window must be (first, last) sample indices, got {window!r}")
+    first, last = (check_int(w, "window entry", low=1) for w in window)
+    if last - first + 1 < n_pushes:
+        raise InvalidArgumentError(f"window {window!r} must start at >= 1 and hold n_pushes = {n_pushes} distinct "
+                                   "samples")  # fmt: skip
+    check_cost("window", float(n_rows) * (last - first + 1), 1e8, "random draws (n_rows x window width)")
+    if isinstance(magnitude, (str, bytes)) or not isinstance(magnitude, Sequence) or len(magnitude) != 2:
+        raise InvalidArgumentError(f"magnitude must be (low, high), got {magnitude!r}")
+    lo_m, hi_m = (check_float(v, "magnitude entry") for v in magnitude)
     if not (math.isfinite(hi_m) and 0 < lo_m <= hi_m):
         raise InvalidArgumentError(f"magnitude must be (low, high) with 0 < low <= high, got {magnitude!r}")
+    check_float(away, "away", low=0.0, allow_none=True)
+    if not isinstance(kinds, (str, Sequence)):
+        raise InvalidArgumentError(f"kinds must be a push kind or a sequence of them, got {kinds!r}")
     dev = generator.device
     width = last - first + 1
     order = torch.rand((n_rows, width), generator=generator, device=dev).argsort(-1)[:, :n_pushes]
@@ -157,6 +168,6 @@ def random_pushes(
             raise InvalidArgumentError(f"kinds lists {len(labels)} labels for {n_pushes} pushes")
         for lab in labels:
             if lab not in PUSH_KINDS:
-                raise UnknownNameError("push kind", str(lab), (*PUSH_KINDS, "mixed"))
+                raise UnknownNameError("push kind (kinds)", str(lab), (*PUSH_KINDS, "mixed"))
         kind_t = torch.tensor([PUSH_KINDS.index(lab) for lab in labels], device=dev).expand(n_rows, n_pushes).clone()
     return PushPlan(steps, mags, kind_t, generator, lo_m / 2 if away is None else float(away), n_candidates)

@@ -40,7 +40,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError
+from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
 from lfd_torch.gmm.gaussian import GaussianBank
 from lfd_torch.modulation import Branch, Modulation, modulated_velocity_unchecked
 from lfd_torch.rollout import Disturbance, RolloutResult, rollout
@@ -255,8 +255,11 @@ class SkillEngine:
             raise ShapeMismatchError(f"{name} must be a floating-point tensor, got {type(x).__name__}")
         if x.ndim != 2 or x.shape[-1] != self.dim:
             raise ShapeMismatchError(f"{name} must have shape (B, {self.dim}), got {tuple(x.shape)}")
-        if not bool(torch.isfinite(x).all()):
-            raise NonFiniteError(f"{name} contains NaN or Inf")
+        from lfd_torch.utils import check_tensor
+
+        if x.shape[0] == 0:
+            raise ShapeMismatchError(f"{name} must hold at least one state, got shape {tuple(x.shape)}")
+        check_tensor(x, name)  # float32/64, finite, below the overflow magnitude
         return x.to(**self._f)
 
     def log_density(self, x: Tensor) -> Tensor:
@@ -347,7 +350,24 @@ class SkillEngine:
             route: (B,) long route, -1 (or None for all) where it is still to be chosen.
             index: (B,) long progress in the route (None: 0).
         """
-        return self._decide(self._check_x(x), route, index)[0]
+        x = self._check_x(x)
+        self._check_progress(route, index, x.shape[0])
+        return self._decide(x, route, index)[0]
+
+    def _check_progress(self, route: Tensor | None, index: Tensor | None, B: int) -> None:
+        """route (B,) in -1..R-1 and index (B,) in 0..(longest route - 1), integer tensors (or None)."""
+        from lfd_torch.errors import InvalidIndexError
+
+        for name, t, lo, hi in (("route", route, -1, len(self.routes) - 1),
+                                ("index", index, 0, max(len(r) for r in self.routes) - 1)):  # fmt: skip
+            if t is None:
+                continue
+            if not isinstance(t, Tensor) or t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
+                raise ShapeMismatchError(f"{name} must be a ({B},) integer tensor, got {getattr(t, 'dtype', type(t).__name__)}")
+            if t.shape != (B,):
+                raise ShapeMismatchError(f"{name} must have shape ({B},), got {tuple(t.shape)}")
+            if bool(((t < lo) | (t > hi)).any()):
+                raise InvalidIndexError(f"{name} entries must lie in {lo}..{hi}, got {t.tolist()}")
 
     def _decide(
         self, x: Tensor, route: Tensor | None, index: Tensor | None
@@ -489,6 +509,7 @@ class SkillEngine:
     def step_batch(self, x: Tensor, route: Tensor | None = None, index: Tensor | None = None) -> tuple[Tensor, Decision, Tensor]:
         """Batched tick for B robots: velocities (B, d), the decisions (new progress) and branches (B,)."""
         x = self._check_x(x)
+        self._check_progress(route, index, x.shape[0])
         dec, densities = self._decide(x, route, index)
         v, branch = self.velocity(x, dec.step, dec.done, dec.inside, densities)
         return v, dec, branch
@@ -520,7 +541,15 @@ class SkillEngine:
         Returns:
             :class:`EngineRollout`.
         """
+        from lfd_torch.rollout import MAX_STORED_VALUES
+        from lfd_torch.skills.disturbances import PushPlan
+        from lfd_torch.utils import check_cost, check_int
+
         x0 = self._check_x(x0, "x0")
+        check_int(n_steps, "n_steps", low=1)
+        check_cost("n_steps", 2.0 * (n_steps + 1) * x0.shape[0] * x0.shape[1], MAX_STORED_VALUES, "stored values")
+        if pushes is not None and not isinstance(pushes, PushPlan):
+            raise InvalidArgumentError(f"pushes must be a PushPlan (random_pushes(...)) or None, got {type(pushes).__name__}")
         B = x0.shape[0]
         dev = x0.device
         T = int(n_steps) + 1

@@ -41,6 +41,7 @@ from lfd_torch.errors import InvalidArgumentError, LfdError, ShapeMismatchError,
 from lfd_torch.modulation import reference_entropy
 from lfd_torch.segmentation import Segmentation
 from lfd_torch.store import atomic_path
+from lfd_torch.utils import check_choice, check_float, check_path
 
 __all__ = ["LIBRARY_SCHEMA", "Skill", "SkillLibrary", "default_fitter"]
 
@@ -209,8 +210,14 @@ class SkillLibrary:
                 dimension or attractor.
             LfdError: whatever the fitter raises (SolverError, CertificationError, ...), with the step named.
         """
+        if not isinstance(demos, Demos):
+            raise InvalidArgumentError(f"demos must be a lfd_torch.data.Demos, got {type(demos).__name__}")
         if not isinstance(segmentation, Segmentation):
             raise InvalidArgumentError(f"segmentation must be a Segmentation, got {type(segmentation).__name__}")
+        check_float(entropy_quantile, "entropy_quantile", low=0.0, high=1.0, allow_none=True)
+        check_choice(entropy_reference, "entropy_reference", ("training", "reproduction"))
+        if not isinstance(check, (bool, Mapping)):
+            raise InvalidArgumentError(f"check must be a bool or a mapping of check_stability arguments, got {check!r}")
         if not isinstance(generator, torch.Generator):
             raise InvalidArgumentError(f"generator must be a torch.Generator, got {type(generator).__name__}")
         fit = default_fitter() if primitive is None else primitive
@@ -277,7 +284,7 @@ class SkillLibrary:
     # ------------------------------------------------------------------ persistence
     def save(self, directory: str | os.PathLike[str]) -> Path:
         """Write the library into ``directory`` (module docstring); returns the manifest path."""
-        root = Path(directory)
+        root = check_path(directory, "directory", error=StoreError)
         files: dict[str, str] = {}
 
         def put(name: str, obj: Any) -> None:
@@ -330,7 +337,7 @@ class SkillLibrary:
         Raises:
             StoreError: a missing, truncated, altered or foreign file (the message names it), or another schema.
         """
-        root = Path(directory)
+        root = check_path(directory, "directory", error=StoreError)
         man_path = root / _MANIFEST
         try:
             manifest = json.loads(man_path.read_text())

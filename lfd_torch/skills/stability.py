@@ -62,6 +62,9 @@ class StabilityReport:
         return dict(self.__dict__)
 
 
+_SAMPLE_KWARGS = frozenset({"n_box", "n_near", "n_far", "box_scale", "near_radius", "far_scale"})
+
+
 def stability_samples(
     library: Any,
     step: int,
@@ -74,7 +77,22 @@ def stability_samples(
     near_radius: float = 0.05,
     far_scale: float = 100.0,
 ) -> tuple[Tensor, Tensor]:
-    """States (n, d) of the three regions for step m and their region codes (n,) (0 box, 1 near, 2 far)."""
+    """States (n, d) of the three regions for step m and their region codes (n,) (0 box, 1 near, 2 far).
+
+    n = n_box + n_near + n_far <= 10^7 (the cost: one engine velocity evaluation per state, mode and step).
+    """
+    from lfd_torch.skills.library import SkillLibrary
+    from lfd_torch.utils import check_cost, check_float, check_generator, check_int
+
+    if not isinstance(library, SkillLibrary):
+        raise InvalidArgumentError(f"library must be a SkillLibrary, got {type(library).__name__}")
+    check_int(step, "step", low=0, high=library.n_steps - 1)
+    check_generator(generator)
+    for name, n in (("n_box", n_box), ("n_near", n_near), ("n_far", n_far)):
+        check_int(n, name, low=0, high=10**7)
+    check_cost("n_box + n_near + n_far", float(n_box + n_near + n_far), 1e7, "stability samples")
+    for name, v in (("box_scale", box_scale), ("near_radius", near_radius), ("far_scale", far_scale)):
+        check_float(v, name, low=0.0)
     f = {"dtype": library.dtype, "device": library.device}
     x_all = torch.cat([s.train_positions for s in library.skills]).to(**f)
     lo, hi = x_all.amin(0), x_all.amax(0)
@@ -120,8 +138,17 @@ def check_stability(
     """
     from lfd_torch.skills.engine import SkillEngine
 
-    if not modes:
-        raise InvalidArgumentError("modes must name at least one modulation mode")
+    from lfd_torch.skills.library import SkillLibrary
+    from lfd_torch.utils import check_int
+
+    if not isinstance(library, SkillLibrary):
+        raise InvalidArgumentError(f"library must be a SkillLibrary, got {type(library).__name__}")
+    if isinstance(modes, str) or not isinstance(modes, Sequence) or not modes:
+        raise InvalidArgumentError(f"modes must be a non-empty sequence of modulation modes, got {modes!r}")
+    check_int(seed, "seed", low=0)
+    unknown = sorted(set(sample_kwargs) - _SAMPLE_KWARGS)
+    if unknown:
+        raise InvalidArgumentError(f"unknown stability_samples argument(s) {unknown}; accepted: {sorted(_SAMPLE_KWARGS)}")
     kw = {k: v for k, v in (("lambda_limit", lambda_limit), ("radial_floor", radial_floor)) if v is not None}
     gen = torch.Generator(device="cpu").manual_seed(int(seed))
     samples = [stability_samples(library, m, generator=gen, **sample_kwargs) for m in range(library.n_steps)]

@@ -36,7 +36,7 @@ import torch
 from py_trees.common import Status
 from torch import Tensor
 
-from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError
+from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
 from lfd_torch.modulation import Branch
 
 if TYPE_CHECKING:
@@ -187,8 +187,11 @@ class SkillTree:
         eng = self.engine
         if not isinstance(x, Tensor) or x.shape != (eng.dim,):
             raise ShapeMismatchError(f"x must have shape ({eng.dim},), got {getattr(x, 'shape', type(x).__name__)}")
-        if not bool(torch.isfinite(x).all()):
-            raise NonFiniteError("x contains NaN or Inf")
+        from lfd_torch.utils import check_int, check_tensor
+
+        check_tensor(x, "x")  # float32/64, finite, below the overflow magnitude
+        check_int(step, "step", low=0, allow_none=True)
+        check_int(route, "route", low=0, allow_none=True)
         c = self.ctx
         c.x = x.to(**eng._f).reshape(1, -1)
         c.route, c.index = self._progress(step, route)

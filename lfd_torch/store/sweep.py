@@ -31,6 +31,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from lfd_torch.errors import StoreError
+from lfd_torch.utils import check_path
 from lfd_torch.store.atomic import atomic_write, is_temp_file
 from lfd_torch.store.table import (
     KEY_COLUMNS,
@@ -62,7 +63,7 @@ def find_parts(root: str | os.PathLike[str], pattern: str = "**/*.parquet") -> l
     Raises:
         StoreError: ``root`` does not exist.
     """
-    root = Path(root)
+    root = check_path(root, "path_or_dir", error=StoreError)
     if root.is_file():
         return [root]
     if not root.is_dir():
@@ -155,7 +156,7 @@ def collect(
         PartialSweepWarning: for each part skipped, and once if rows were resolved by recency.
     """
     outputs = [] if save_to is None else [save_to] if isinstance(save_to, (str, os.PathLike)) else list(save_to)
-    outputs = [Path(p) for p in outputs]
+    outputs = [check_path(p, "save_to", error=StoreError) for p in outputs]
     bad = [p for p in outputs if p.suffix.lower() not in _SUFFIXES]
     if bad:
         raise StoreError(f"cannot save to {[str(p) for p in bad]}: supported suffixes are {list(_SUFFIXES)}")

@@ -27,6 +27,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from lfd_torch.errors import StoreError
+from lfd_torch.utils import check_path
 from lfd_torch.store.atomic import atomic_path
 
 __all__ = [
@@ -176,8 +177,11 @@ def write_table(
         StoreError: missing required columns, null or duplicated keys, a disagreement with the manifest, a
             column that Parquet cannot hold, or an I/O failure (the destination is then left unchanged).
     """
+    path = check_path(path, "path", error=StoreError)
     frame = as_frame(rows)
     metadata: dict[bytes, bytes] = {}
+    if manifest is not None and not isinstance(manifest, Mapping):
+        raise StoreError(f"manifest must be a mapping from run_manifest(cfg, seed), got {type(manifest).__name__}")
     if manifest is not None:
         frame = _apply_manifest(frame, manifest)
         try:
@@ -200,6 +204,7 @@ def read_table(path: str | os.PathLike[str], *, validate: bool = True) -> pd.Dat
     Raises:
         StoreError: the file is missing or unreadable, or (with ``validate``) not a valid results table.
     """
+    path = check_path(path, "path", error=StoreError)
     try:
         frame = pq.read_table(path).to_pandas()
     except (OSError, pa.ArrowException) as exc:

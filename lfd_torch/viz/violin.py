@@ -29,6 +29,7 @@ from matplotlib.lines import Line2D
 from lfd_torch.errors import PlotError, UnknownNameError
 from lfd_torch.store.atomic import atomic_write
 from lfd_torch.store.table import KEY_COLUMNS, PROVENANCE_COLUMNS
+from lfd_torch.utils import check_path
 
 __all__ = ["violin", "violin_grid", "save_figure", "metric_columns", "PlotError", "MEAN_MARKER_GID"]
 
@@ -107,7 +108,7 @@ def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 200) ->
     Raises:
         PlotError: unknown extension (checked before anything is written).
     """
-    path = Path(path)
+    path = check_path(path, "path", error=PlotError)
     fmt = _check_format(path)
     # Reproducible PDFs: no creation date embedded.
     metadata = {"CreationDate": None} if fmt == "pdf" else None
@@ -341,6 +342,8 @@ def violin_grid(
         PlotError: empty ``metrics``, wrong number of ``titles``, unknown file format, or a panel's error.
     """
     frame = _load(table)
+    if isinstance(metrics, str) or not isinstance(metrics, Sequence):
+        raise PlotError(f"metrics must be a sequence of metric column names, got {metrics!r}")
     metrics = list(metrics)
     if not metrics:
         raise PlotError("metrics is empty: give at least one metric column")
