@@ -56,7 +56,7 @@ import torch
 from torch import Tensor
 
 from lfd_torch.data.demos import MIN_SAMPLES, Demos
-from lfd_torch.utils import check_cost, check_float
+from lfd_torch.utils import check_cost, check_float, real_array
 from lfd_torch.errors import (
     InvalidArgumentError,
     NonFiniteError,
@@ -145,13 +145,7 @@ class Disturbance:
         object.__setattr__(self, "steps", tuple(sorted({int(s) for s in raw})))
         value = self.value
         if not isinstance(value, Tensor):
-            try:
-                arr = np.asarray(value)
-            except (TypeError, ValueError) as exc:
-                raise InvalidArgumentError(f"disturbance value must be a (d,) or (B, d) array, got {value!r}") from exc
-            if arr.dtype.kind not in "fiu":
-                raise InvalidArgumentError(f"disturbance value must hold real numbers, got {value!r}")
-            value = torch.as_tensor(arr)
+            value = torch.as_tensor(real_array(value, "disturbance value", error=InvalidArgumentError))
         if value.is_complex() or value.dtype == torch.bool or value.ndim not in (1, 2):
             raise InvalidArgumentError(f"disturbance value must be a real (d,) or (B, d) array, got {value.dtype} of "
                                        f"shape {tuple(value.shape)}")  # fmt: skip

@@ -33,6 +33,7 @@ __all__ = [
     "check_choice",
     "check_generator",
     "check_tensor",
+    "real_array",
     "check_cost",
     "safe_magnitude",
     "solver_errors",
@@ -184,6 +185,22 @@ def safe_magnitude(dtype: torch.dtype) -> float:
     beyond it are rejected rather than silently returning Inf or NaN.
     """
     return float(torch.finfo(dtype).max) ** 0.25
+
+
+def real_array(value: object, name: str, *, error: type[Exception] = ShapeMismatchError) -> np.ndarray:
+    """``value`` (array-like or tensor) as a float64 numpy array; complex, string and object values raise ``error``
+    naming ``name``."""
+    if isinstance(value, Tensor):
+        if value.is_complex():
+            raise error(f"{name} must hold real numbers, got {value.dtype}")
+        value = value.detach().cpu().numpy()
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise error(f"{name} is not a real array: {exc}") from exc
+    if arr.dtype.kind not in "fiu":
+        raise error(f"{name} must hold real numbers, got {value!r}")
+    return arr.astype(float)
 
 
 def check_tensor(

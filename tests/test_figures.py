@@ -7,7 +7,6 @@ scooping simulation replaced by ones that raise, and must rewrite every figure b
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import os
 import re
@@ -67,10 +66,10 @@ def published(tmp_path_factory) -> Path:
     mnist.run(_compose("mnist", common + [
         "digits=[7]", "data.n_demos=2", "data.pool=null", "data.n_points=120", f"data.directory={root / 'mnist'}",
         "n_perturbed=1", "budget_s=15", "n_resample=40", f"+out_dir={root / 'job_mnist'}"]))  # fmt: skip
-    if importlib.util.find_spec("mujoco") is not None:  # 1 s trials: each mode's runs stop early, some disturbed
-        scooping.run(_compose("scooping", common + [
-            "n_disturbed=6", "starts.n=2", "budget_s=1.0", "n_figure_trials=1", "workers=1",
-            f"+out_dir={root / 'job_scoop'}"]))  # fmt: skip
+    # 1 s trials: each mode's runs stop early, some disturbed
+    scooping.run(_compose("scooping", common + [
+        "n_disturbed=6", "starts.n=2", "budget_s=1.0", "n_figure_trials=1", "workers=1",
+        f"+out_dir={root / 'job_scoop'}"]))  # fmt: skip
     return root
 
 
@@ -196,8 +195,6 @@ def _middle_of_largest_record(raw: bytearray) -> int:
 )
 def test_missing_or_damaged_stored_file_raises_store_error_naming_it(published, monkeypatch, tmp_path, relative,
                                                                      damage):  # fmt: skip
-    if "scooping" in relative and not (published / "results" / relative).is_file():
-        pytest.skip("no MuJoCo: no scooping run")
     copy = tmp_path / "project"
     shutil.copytree(published / "results", copy / "results")
     path = copy / "results" / relative
@@ -217,8 +214,7 @@ def test_missing_or_damaged_stored_file_raises_store_error_naming_it(published, 
 
 def test_scooping_frame_without_offscreen_rendering_is_reported_not_redrawn(published, monkeypatch, tmp_path,
                                                                             capsys):  # fmt: skip
-    if not (published / "results" / "libraries" / "scooping").is_dir():
-        pytest.skip("no MuJoCo: no scooping run")
+    assert (published / "results" / "libraries" / "scooping").is_dir()
     copy = tmp_path / "project"
     shutil.copytree(published / "results", copy / "results")
     frame = copy / "results" / "figures" / "scooping_frame.png"

@@ -44,6 +44,7 @@ from lfd_torch.robot.urdf import (
     _check_tool_offset,
     rpy_to_matrix,
 )
+from lfd_torch.utils import real_array
 
 __all__ = [
     "LinkBody",
@@ -288,23 +289,8 @@ def baxter_mjcf(
     return "\n".join(out) + "\n"
 
 
-def _real_array(value, name: str) -> np.ndarray:
-    """``value`` (array-like or tensor) as a float64 numpy array; complex, strings and objects raise, naming it."""
-    if hasattr(value, "detach"):  # a torch tensor
-        if value.is_complex():
-            raise ShapeMismatchError(f"{name} must hold real numbers, got {value.dtype}")
-        value = value.detach().cpu().numpy()
-    try:
-        arr = np.asarray(value)
-    except (TypeError, ValueError) as exc:
-        raise ShapeMismatchError(f"{name} is not a real array: {exc}") from exc
-    if arr.dtype.kind not in "fiu":
-        raise ShapeMismatchError(f"{name} must hold real numbers, got {value!r}")
-    return arr.astype(float)
-
-
 def _gains(values, name: str) -> tuple[float, ...]:
-    arr = _real_array(values, name)
+    arr = real_array(values, name)
     if arr.shape not in ((), (1,), (N,)):
         raise ShapeMismatchError(f"{name} must have {N} entries (or 1), got shape {arr.shape}")
     vals = tuple(float(v) for v in np.broadcast_to(arr, (N,)))
@@ -408,8 +394,8 @@ class BaxterPlant:
         """Set the arm to ``q`` (7,) rad (default the neutral pose), ``qd`` (7,) rad/s (default 0), hold ``q``."""
         from lfd_torch.robot.arm import NEUTRAL_POSE
 
-        q = np.array(NEUTRAL_POSE, dtype=float) if q is None else _real_array(q, "q")
-        qd = np.zeros(N) if qd is None else _real_array(qd, "qd")
+        q = np.array(NEUTRAL_POSE, dtype=float) if q is None else real_array(q, "q")
+        qd = np.zeros(N) if qd is None else real_array(qd, "qd")
         self._check7(q, "q")
         self._check7(qd, "qd")
         bad = (q < self.lower - 1e-9) | (q > self.upper + 1e-9)
@@ -449,7 +435,7 @@ class BaxterPlant:
     def set_command(self, q_d, qd_d) -> None:
         """Impedance set-point: desired joint angles ``q_d`` (7,) rad and velocities ``qd_d`` (7,) rad/s (clamped
         by MuJoCo to the joint range and the velocity limits)."""
-        q_d, qd_d = _real_array(q_d, "q_d"), _real_array(qd_d, "qd_d")
+        q_d, qd_d = real_array(q_d, "q_d"), real_array(qd_d, "qd_d")
         self._check7(q_d, "q_d")
         self._check7(qd_d, "qd_d")
         self._setpoint = q_d.copy()
@@ -574,8 +560,8 @@ class BaxterPlant:
             raise UnknownNameError("body", body, tuple(self.body_ids))
         from lfd_torch.errors import NonFiniteError
 
-        f = _real_array(force, "force")
-        t = np.zeros(3) if torque is None else _real_array(torque, "torque")
+        f = real_array(force, "force")
+        t = np.zeros(3) if torque is None else real_array(torque, "torque")
         if f.shape != (3,) or t.shape != (3,):
             raise ShapeMismatchError(f"force and torque must have shape (3,), got {f.shape}, {t.shape}")
         if not (np.abs(f) <= 1e6).all() or not (np.abs(t) <= 1e6).all():  # NaN fails too

@@ -185,7 +185,6 @@ def multi_step_demos(
     device = generator.device  # the data are drawn on the generator's device
     waypoints = waypoints.to(dtype=dtype, device=device)
     M = waypoints.shape[0] - 1
-    d = waypoints.shape[1]
     sequences, switches = [], []
     for _ in range(n_demos):
         jitter = torch.randn(waypoints.shape, generator=generator, dtype=dtype, device=device)
