@@ -3,7 +3,8 @@
     python experiments/bench_segmentation_seeds.py [--shapes Multi_Models_1 ...] [--seeds 10]
 
 Segments all 7 demonstrations of each shape with default settings for seeds 0..N-1 and prints, per demonstration,
-the most common step count and on how many seeds it occurs, and per shape the number of distinct route groupings.
+the most common step count and on how many seeds it occurs, per route (of the most common grouping) the most common
+number of steps of the route and on how many seeds it occurs, and per shape the number of distinct route groupings.
 """
 
 from __future__ import annotations
@@ -23,20 +24,27 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seeds", type=int, default=10)
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    print("| shape | modal steps per demo (seeds of", args.seeds, ") | distinct route groupings |")
-    print("|---|---|---|")
+    print("| shape | modal steps per demo (seeds of", args.seeds, ") | modal steps per route | distinct route groupings |")
+    print("|---|---|---|---|")
     for shape in args.shapes:
         demos = load_lasa(shape)
         counts = [collections.Counter() for _ in range(demos.n_demos)]
         groupings = collections.Counter()
+        route_steps: dict[tuple[int, ...], collections.Counter] = collections.defaultdict(collections.Counter)
         for seed in range(args.seeds):
             seg = segment(demos, generator=torch.Generator().manual_seed(seed))
             for i in range(demos.n_demos):
                 counts[i][len(seg.step_sequence(i))] += 1
             groups = sorted(tuple(i for i in range(demos.n_demos) if int(seg.route_of[i]) == r) for r in range(seg.n_routes))
             groupings[tuple(groups)] += 1
+            for r, g in enumerate(sorted(range(seg.n_routes), key=lambda r: min(i for i in range(demos.n_demos)
+                                                                             if int(seg.route_of[i]) == r))):
+                route_steps[groups[r]][len(seg.routes[g])] += 1
         modal = " ".join(f"{c.most_common(1)[0][0]} ({c.most_common(1)[0][1]})" for c in counts)
-        print(f"| {shape} | {modal} | {len(groupings)} |")
+        top = groupings.most_common(1)[0][0]
+        per_route = " ".join(f"{{{','.join(map(str, g))}}}: {route_steps[g].most_common(1)[0][0]} "
+                             f"({route_steps[g].most_common(1)[0][1]})" for g in top)
+        print(f"| {shape} | {modal} | {per_route} | {len(groupings)} |", flush=True)
 
 
 if __name__ == "__main__":

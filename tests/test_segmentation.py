@@ -700,3 +700,32 @@ def test_segment_lasa_refuses_publish_in_a_multirun(tmp_path):
     assert proc.returncode != 0
     assert "publish=true in a multirun" in proc.stderr + proc.stdout
     assert not (tmp_path / "results").exists()
+
+
+def _run_on(path: torch.Tensor, min_duration: int = 3) -> "sampler_module._Run":
+    """A one-chain sampler state on one 2-D path (its grid points) for scoring labellings."""
+    v = torch.gradient(path, dim=0)[0] / 0.01
+    cfg = sampler_module.BetaProcessHMMSampler(extra_dof=30.0, n_chains=1)
+    x, lengths = sampler_module._pad([path])
+    vp, _ = sampler_module._pad([v])
+    return sampler_module._Run(cfg, x, vp, lengths, torch.Generator().manual_seed(0), None, min_duration,
+                               (1e-3, 1e-6))  # fmt: skip
+
+
+@pytest.mark.parametrize("corner", [False, True])
+def test_collapsed_evidence_prefers_one_state_per_leg(corner):
+    """The collapsed score (fields, noise and transitions integrated out) prefers one state on a straight leg and
+    two at a 90-degree corner: the evidence of the direction fields decides, not the number of states."""
+    g = torch.Generator().manual_seed(3)
+    t = torch.linspace(0.0, 1.0, 30, dtype=torch.float64)
+    first = torch.stack([t, torch.zeros_like(t)], -1)
+    second = torch.stack([1.0 + t[1:], torch.zeros_like(t[1:])], -1) if not corner else \
+        torch.stack([torch.ones_like(t[1:]), t[1:]], -1)
+    path = torch.cat([first, second]) + 1e-3 * torch.randn(59, 2, generator=g, dtype=torch.float64)
+    run = _run_on(path)
+    split = torch.cat([torch.zeros(30, dtype=torch.long), torch.ones(29, dtype=torch.long)]).view(1, 1, -1)
+    one = torch.zeros_like(split)
+    phases = torch.cat([torch.arange(30).clamp_max(2), torch.arange(29).clamp_max(2)]).view(1, 1, -1)
+    scores = [float(run._collapsed_score(s, torch.ones(1, 1, k, dtype=torch.bool), ph, run.alpha, run.kappa,
+                                         run.mass)) for s, k, ph in ((split, 2, phases), (one, 1, torch.arange(59).clamp_max(2).view(1, 1, -1)))]  # fmt: skip
+    assert (scores[0] > scores[1]) == corner

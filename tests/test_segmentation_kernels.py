@@ -249,3 +249,46 @@ def test_additive_field_likelihood_against_scipy_and_at_rest(generator, dof):
     scaled = field_log_likelihood(z, u, rest, b, psi, dof)
     half = 0.5 * (torch.logdet(psi[1]) - torch.logdet(psi[0]))
     torch.testing.assert_close(scaled[:, 0] - scaled[:, 1], half.expand(n), atol=1e-4, rtol=0)
+
+
+def test_field_marginal_likelihood_is_the_chib_identity(generator):
+    """MNIW evidence = likelihood x prior / posterior at any (B, Psi) (exact for a conjugate model)."""
+    from lfd_torch.segmentation.field import (
+        FieldPrior, field_log_density, field_log_likelihood, field_log_marginal_likelihood, field_posterior,
+        field_prior, field_statistics, sample_field,
+    )  # fmt: skip
+
+    d, n = 3, 25
+    prior = field_prior(d, direction_noise=0.3, extra_dof=5.0)
+    z = torch.cat([torch.randn(n, d, generator=generator, dtype=F64), torch.ones(n, 1, dtype=F64)], -1)
+    u = torch.randn(n, d, generator=generator, dtype=F64)
+    w = torch.rand(n, generator=generator, dtype=F64) + 0.2
+    stats = field_statistics(z, u, w, torch.ones(n, 1, dtype=F64))
+    evidence = field_log_marginal_likelihood(prior, *stats)[0] + 0.5 * d * torch.log(w).sum()
+    post = field_posterior(prior, *stats)
+    post = FieldPrior(post.mean[0], post.row_covariance[0], post.dof[0], post.scale[0])
+    for _ in range(3):
+        b, psi = sample_field(post, generator)
+        chib = field_log_likelihood(z, u, w, b[None], psi[None]).sum() + field_log_density(b, psi, prior)
+        chib = chib - field_log_density(b, psi, post)
+        assert float(evidence) == pytest.approx(float(chib), abs=1e-8)
+    empty = field_log_marginal_likelihood(prior, *field_statistics(z, u, w, torch.zeros(n, 1, dtype=F64)))
+    assert float(empty) == 0.0
+
+
+def test_dirichlet_multinomial_transitions_against_scipy(generator):
+    """Sticky rows integrated out: the DM pmf of the row counts over the multinomial coefficient, owned block only."""
+    from lfd_torch.segmentation.transitions import dirichlet_multinomial_log_prob
+
+    K, alpha, kappa = 4, 1.3, 7.0
+    feats = torch.tensor([True, True, False, True])
+    counts = torch.randint(0, 6, (K, K), generator=generator).to(F64)
+    out = float(dirichlet_multinomial_log_prob(counts, feats, alpha, kappa))
+    own = [0, 1, 3]
+    ref = 0.0
+    for j in own:
+        n = counts[j, own].numpy()
+        a = np.array([alpha + kappa * (k == j) for k in own])
+        coef = math.lgamma(n.sum() + 1) - sum(math.lgamma(v + 1) for v in n)
+        ref += stats.dirichlet_multinomial.logpmf(n, a, int(n.sum())) - coef
+    assert out == pytest.approx(ref, abs=1e-9)

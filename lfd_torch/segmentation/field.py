@@ -75,11 +75,12 @@ import torch
 from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
-from lfd_torch.gmm import NIWPrior, inverse_wishart_log_density, sample_niw
+from lfd_torch.gmm import NIWPrior, inverse_wishart_log_density, log_multigamma, sample_niw
 from lfd_torch.gmm.gaussian import LOG_2PI
 
 __all__ = ["FieldPrior", "FieldObservations", "field_observations", "field_prior", "field_statistics",
-           "field_posterior", "sample_field", "field_log_density", "field_log_likelihood",
+           "field_posterior", "field_log_marginal_likelihood", "sample_field", "field_log_density",
+           "field_log_likelihood",
            "field_log_likelihood_additive"]
 
 
@@ -219,6 +220,35 @@ def field_posterior(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor,
     s_n = 0.5 * (s_n + s_n.transpose(-1, -2))
     return FieldPrior(mean=m_n, row_covariance=0.5 * (v_n + v_n.transpose(-1, -2)), dof=prior.dof + counts,
                       scale=s_n)
+
+
+def _chol_logdet(matrix: Tensor) -> Tensor:
+    return 2.0 * torch.log(torch.diagonal(torch.linalg.cholesky(matrix), dim1=-2, dim2=-1)).sum(-1)
+
+
+def field_log_marginal_likelihood(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor) -> Tensor:
+    """log p(u_1..n | z_1..n) with (B, Psi) integrated out under the MNIW prior, from weighted statistics.
+
+    With weights omega_t (u_t ~ N(B z_t, Psi / omega_t)), the rescaled sqrt(omega_t) u_t are Gaussian regressions on
+    sqrt(omega_t) z_t with covariance Psi, whose evidence is (Minka 2000)
+
+        log p = -n d / 2 log pi + d / 2 log(|V_n| / |V0|) + log Gamma_d(nu_n / 2) - log Gamma_d(nu0 / 2)
+                + nu0 / 2 log|S0| - nu_n / 2 log|S_n|,
+
+    and the change of variables adds d / 2 sum_t log omega_t, which the caller adds (it does not depend on the
+    state). Batch shape (..., K); exactly 0 for empty states.
+    """
+    post = field_posterior(prior, counts, szz, suz, suu)
+    d = suu.shape[-1]
+    out = (
+        -0.5 * d * math.log(math.pi) * counts
+        + 0.5 * d * (_chol_logdet(post.row_covariance) - _chol_logdet(prior.row_covariance))
+        + log_multigamma(0.5 * post.dof, d)
+        - log_multigamma(0.5 * prior.dof, d)
+        + 0.5 * prior.dof * _chol_logdet(prior.scale)
+        - 0.5 * post.dof * _chol_logdet(post.scale)
+    )
+    return torch.where(counts > 0, out, torch.zeros_like(out))
 
 
 def sample_field(params: FieldPrior, generator: torch.Generator) -> tuple[Tensor, Tensor]:

@@ -923,6 +923,9 @@ def segment(
         "velocity_noise": sigma_v,
         "coarse_runs": [[(s, int(torch.searchsorted(g, a))) for s, a, _ in rl] for rl, g in zip(runs_all, grid)],
         "grid": [g.tolist() for g in grid],
+        "log_prob": result.log_prob,
+        "collapsed_log_prob": result.collapsed_log_prob,
+        "chain": result.chain,
     }
     stretch = max(3, min(min_lens))
     return _assemble(demos, pieces, routes, route_of, states_full, step_state, stretch, sigma_x**2, result, info,

@@ -27,6 +27,7 @@ __all__ = [
     "transition_counts",
     "sample_transition_weights_posterior",
     "dirichlet_log_density_rows",
+    "dirichlet_multinomial_log_prob",
     "expand_min_duration",
     "free_transitions",
 ]
@@ -144,6 +145,33 @@ def dirichlet_log_density_rows(pi: Tensor, features: Tensor, alpha: float, kappa
     row = torch.lgamma(a.sum(-1).clamp_min(1e-300)) - torch.where(block > 0, torch.lgamma(a.clamp_min(1e-300)), torch.zeros_like(a)).sum(-1)
     row = row + ((a - 1.0) * log_pi * block).sum(-1)
     return (row * f).sum(-1)
+
+
+def dirichlet_multinomial_log_prob(counts: Tensor, features: Tensor, alpha: float | Tensor,
+                                   kappa: float | Tensor) -> Tensor:
+    """log p(transitions | F) with the sticky rows pi_j ~ Dir(alpha + kappa delta_j) integrated out.
+
+    For every owned row j: log Gamma(A_j) - log Gamma(A_j + n_j) + sum_k [log Gamma(a_jk + n_jk) - log Gamma(a_jk)],
+    a_jk = alpha + kappa delta_jk over the owned features, A_j = sum_k a_jk, n_j = sum_k n_jk (the probability of
+    one ordered sequence of transitions, not of their counts).
+
+    Args:
+        counts: (..., K, K) transition counts n_jk (zero outside the owned block).
+        features: (..., K) bool.
+        alpha, kappa: numbers or tensors broadcasting against (..., 1, 1).
+
+    Returns:
+        (...) log probabilities.
+    """
+    K = counts.shape[-1]
+    f = features.to(counts.dtype)
+    block = f.unsqueeze(-1) * f.unsqueeze(-2)
+    n = counts * block
+    a = prior_shape(K, alpha, kappa, dtype=counts.dtype, device=counts.device) * block
+    safe = torch.where(block > 0, a, torch.ones_like(a))
+    rows = (torch.lgamma(a.sum(-1).clamp_min(1e-300)) - torch.lgamma((a + n).sum(-1).clamp_min(1e-300))
+            + ((torch.lgamma(safe + n) - torch.lgamma(safe)) * block).sum(-1))
+    return (rows * f).sum(-1)
 
 
 def expand_min_duration(initial: Tensor, transition: Tensor, min_duration: int) -> tuple[Tensor, Tensor]:
