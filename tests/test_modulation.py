@@ -26,6 +26,7 @@ from lfd_torch.modulation import (
     mixture_renyi_entropy,
     modulate,
     modulated_velocity,
+    modulated_velocity_single,
     modulation_matrix,
     reference_entropy,
     renyi_entropy,
@@ -446,6 +447,38 @@ def test_feature_major_layout_equals_the_row_major_one(d: int, generator: torch.
         assert torch.equal(b.branch, a.branch) and b.branch.shape == (n,)
         if mode == "full":
             assert {int(v) for v in a.branch.unique()} == {int(v) for v in Branch}
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_single_sample_form_equals_the_tensor_one(d: int, generator: torch.Generator) -> None:
+    """``modulated_velocity_single`` (the single-state tick's Python-float form) gives the velocity and branch of
+    ``modulated_velocity_unchecked`` sample by sample, in every mode: at the goal, with f orthogonal to e (the
+    c = 0 rule), on ties own == other, with no other subtask (-inf) and on both sides of H2_ref."""
+    from lfd_torch.modulation import modulated_velocity_unchecked
+
+    n = 300
+    g = torch.randn(d, generator=generator, dtype=torch.float64)
+    x = g + torch.randn(n, d, generator=generator, dtype=torch.float64)
+    x[:5] = g
+    f = torch.randn(n, d, generator=generator, dtype=torch.float64)
+    e = x - g
+    f[5:15] = 0
+    f[5:15, 0], f[5:15, 1] = -e[5:15, 1], e[5:15, 0]  # f orthogonal to e: c = 0
+    own = torch.randn(n, generator=generator, dtype=torch.float64)
+    other = torch.randn(n, generator=generator, dtype=torch.float64)
+    other[15:25] = own[15:25]
+    other[25:35] = -math.inf
+    h2 = torch.randn(n, generator=generator, dtype=torch.float64)
+    ref = torch.randn(n, generator=generator, dtype=torch.float64)
+    for mode in MODULATION_MODES:
+        want = modulated_velocity_unchecked(x, f, g, own, other, h2, ref, mode, 2.5, 0.1)
+        for i in range(n):
+            u, branch = modulated_velocity_single(e[i].tolist(), f[i].tolist(), float(own[i]), float(other[i]),
+                                                  float(h2[i]), float(ref[i]), mode, 2.5, 0.1)  # fmt: skip
+            assert int(branch) == int(want.branch[i]), (mode, i)
+            torch.testing.assert_close(torch.tensor(u, dtype=torch.float64), want.velocity[i], rtol=1e-14, atol=1e-15)
+        if mode == "full":
+            assert {int(v) for v in want.branch.unique()} == {int(v) for v in Branch}
 
 
 def test_modes(generator: torch.Generator) -> None:

@@ -344,6 +344,51 @@ def test_rate_floor_and_speed_cap_in_the_feature_major_layout() -> None:
         rate_floor(v.T, e.T, P, rho, dim=0)
 
 
+def test_single_state_shaping_equals_rate_floor_and_speed_cap() -> None:
+    """``shape_single`` (the single-state tick's Python-float form) equals ``speed_cap(rate_floor(...))`` sample by
+    sample: where the floor acts and where not, under and over the cap, at e = 0 and without a cap."""
+    from lfd_torch.skills.arrival import shape_single
+
+    gen = torch.Generator().manual_seed(4)
+    d, n = 3, 400
+    L = torch.randn(d, d, generator=gen, dtype=F64)
+    P = L @ L.T + 0.2 * torch.eye(d, dtype=F64)
+    e = torch.randn(n, d, generator=gen, dtype=F64) * torch.logspace(-3, 1, n, dtype=F64).unsqueeze(-1)
+    e[:4] = 0
+    v = torch.randn(n, d, generator=gen, dtype=F64) * 3
+    tiny = torch.finfo(F64).tiny
+    for v_hi in (2.0, math.inf):
+        want = speed_cap(rate_floor(v, e, P, 0.7), torch.linalg.vector_norm(e, dim=-1), v_hi, 0.5)
+        Pe = e @ P
+        for i in range(n):
+            u = shape_single(v[i].tolist(), e[i].tolist(), Pe[i].tolist(), 0.7, v_hi, 0.5, tiny)
+            torch.testing.assert_close(torch.tensor(u, dtype=F64), want[i], rtol=1e-13, atol=1e-15)
+
+
+@pytest.mark.parametrize("mode", ["none", "large", "small", "full"])
+def test_single_state_velocity_equals_the_dense_one(mode: str, l_library: SkillLibrary, tmp_path) -> None:
+    """``SkillEngine.tick_velocity`` (the tree's drive leaves: one step's tables, Python-float modulation and
+    shaping) against the dense batched ``velocity`` row by row, with the tree's subtask decision and densities
+    from ``tick_probe``, in every mode and in float32."""
+    gen = torch.Generator().manual_seed(11)
+    x, route, index = _random_pairs(l_library, 300, gen)
+    l_library.save(tmp_path / "lib")
+    for lib, tol in ((l_library, 1e-12), (SkillLibrary.load(tmp_path / "lib", dtype=torch.float32), 1e-5)):
+        eng = SkillEngine(lib, mode)
+        xs = x.to(lib.dtype)
+        dec = eng.decide(xs, route, index)
+        v, branch = eng.velocity(xs, dec.step, dec.done, dec.inside)
+        for i in torch.nonzero(~dec.done).reshape(-1).tolist():
+            m = int(dec.step[i])
+            ld, _ = eng.tick_probe(xs[i])
+            other = max(val for k, val in enumerate(ld) if k != m)
+            assert (ld[m] >= other) == bool(dec.inside[i])
+            u, b = eng.tick_velocity(xs[i], m, bool(dec.inside[i]), (ld[m], other))
+            assert int(b) == int(branch[i]), i
+            assert u.dtype == lib.dtype
+            torch.testing.assert_close(u, v[i], rtol=tol, atol=tol)
+
+
 def test_a_crawling_primitive_arrives_in_bounded_time_with_the_rate_floor(l_library: SkillLibrary) -> None:
     """Slow every primitive by 1e-3 (still certified): without the rate floor the task does not finish in the
     budget, with it it does, within the bound ln(V(x0) / (lambda_min(P) r_a^2)) / rho of every step; dV/dt < 0."""

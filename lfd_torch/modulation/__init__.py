@@ -44,6 +44,7 @@ from lfd_torch.modulation.policy import (
     Modulation,
     ModulationResult,
     modulated_velocity,
+    modulated_velocity_single,
     modulated_velocity_unchecked,
 )
 
@@ -62,6 +63,7 @@ __all__ = [
     "mixture_renyi_entropy",
     "modulate",
     "modulated_velocity",
+    "modulated_velocity_single",
     "modulated_velocity_unchecked",
     "modulation_matrix",
     "pair_factors",

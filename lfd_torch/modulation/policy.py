@@ -78,6 +78,7 @@ __all__ = [
     "Modulation",
     "ModulationResult",
     "modulated_velocity",
+    "modulated_velocity_single",
     "modulated_velocity_unchecked",
 ]
 
@@ -280,6 +281,38 @@ def modulated_velocity_unchecked(
     out = torch.where(at_goal.unsqueeze(dim), torch.zeros_like(out), out)
     branch = torch.where(at_goal, torch.full_like(branch, int(Branch.AT_GOAL)), branch)
     return ModulationResult(out, branch)
+
+
+def modulated_velocity_single(
+    e: list[float],
+    f: list[float],
+    log_p_own: float | None,
+    log_p_other: float | None,
+    h2: float | None,
+    h2_ref: float | None,
+    mode: str,
+    lambda_limit: float,
+    radial_floor: float,
+) -> tuple[list[float], Branch]:
+    """:func:`modulated_velocity_unchecked` for one sample in Python floats, e = x - g and f as lists of d floats:
+    the same formulas in the same order, for the single-state control tick (a few d-vectors, where a tensor
+    kernel per operation costs more than the arithmetic). Returns the velocity (list) and the branch."""
+    if mode == "none":
+        return list(f), Branch.UNMODULATED
+    r = math.sqrt(sum(v * v for v in e))
+    if r == 0:
+        return [0.0] * len(e), Branch.AT_GOAL
+    unit = [v / r for v in e]
+    c = sum(a * b for a, b in zip(f, unit))
+    a = max(abs(c), radial_floor * math.sqrt(sum(v * v for v in f)))
+    if mode in ("large", "full") and log_p_own < log_p_other:
+        log_ratio = log_p_other - log_p_own
+        s = math.exp(min(max(0.0 if math.isnan(log_ratio) else log_ratio, 0.0), math.log(lambda_limit)))
+        return [-(a * s) * u for u in unit], Branch.LARGE_SCALE
+    if mode in ("small", "full") and h2 > h2_ref:
+        lam_ss = math.exp(h2_ref - h2)
+        return [lam_ss * v - a * u for v, u in zip(f, unit)], Branch.SMALL_SCALE
+    return list(f), Branch.UNMODULATED
 
 
 @dataclass(frozen=True)

@@ -43,7 +43,7 @@ from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError
 
-__all__ = ["Arrival", "rate_floor", "speed_cap"]
+__all__ = ["Arrival", "rate_floor", "shape_single", "speed_cap"]
 
 
 def _nonneg(value: object, name: str, *, allow_zero: bool, allow_inf: bool = False) -> float:
@@ -122,3 +122,22 @@ def speed_cap(u: Tensor, r: Tensor, v_hi: Tensor | float, slow_radius: float, *,
     cap = torch.as_tensor(v_hi, dtype=u.dtype, device=u.device) * (r / slow_radius).clamp(max=1.0)
     alpha = torch.where(speed > cap, cap / speed.clamp_min(torch.finfo(u.dtype).tiny), 1.0)
     return u * alpha.unsqueeze(dim)
+
+
+def shape_single(u: list[float], e: list[float], Pe: list[float], rate: float, v_hi: float, slow_radius: float,
+                 tiny: float) -> list[float]:  # fmt: skip
+    """:func:`rate_floor` then :func:`speed_cap` of one sample in Python floats (u, e = x - g_m and P_m e as lists
+    of d floats; ``tiny`` the smallest normal number of the engine's dtype): the same formulas in the same order,
+    for the single-state control tick."""
+    V = sum(a * b for a, b in zip(e, Pe))
+    need = 2 * sum(p * v for p, v in zip(Pe, u)) + rate * V
+    norm2 = sum(p * p for p in Pe)
+    if need > 0 and norm2 > 0:
+        gain = need / (2 * max(norm2, tiny))
+        u = [v - gain * p for v, p in zip(u, Pe)]
+    speed = math.sqrt(sum(v * v for v in u))
+    cap = v_hi * min(math.sqrt(sum(v * v for v in e)) / slow_radius, 1.0)
+    if speed > cap:
+        alpha = cap / max(speed, tiny)
+        u = [v * alpha for v in u]
+    return u

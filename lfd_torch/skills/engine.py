@@ -15,6 +15,14 @@ The behaviour tree of :mod:`~lfd_torch.skills.tree` is the source of these decis
 (:meth:`SkillEngine.tick`); :meth:`SkillEngine.decide` is its vectorised equivalent for B states, which a test checks
 decision for decision against the py_trees tick.
 
+Single-state tick (:meth:`SkillEngine.tick`, a control loop's hot path, where the cost of each tensor call, not the
+arithmetic, dominates). The leaves decide on one probe per tick (:meth:`SkillEngine.tick_probe`: every step's
+log p(x|A_m) from :class:`SubtaskBank` and its arrival test, turned into Python floats once); the drive leaf then
+evaluates only its own step's primitive and, off the large-scale branch, its H2 (:meth:`SkillEngine.tick_velocity`,
+~10 small kernels on tables precomputed per step) and applies the modulation, rate floor and speed cap to those
+few d-vectors in Python floats, with the formulas of the tensor functions. The decisions are those of the batched
+densities' kernel; tests check velocities and branches against the dense batched path and the reference.
+
 Batched hot path (:meth:`SkillEngine.step_batch`, the rollout's field). The log densities of all subtask spaces
 come from :class:`SubtaskBank` (one whitening product for every Gaussian, a max per step), feature-major (M, B), in
 row blocks of :data:`CHUNK`. Batches of at least :data:`GROUPED_MIN_ROWS` rows then sort the live rows by (step,
@@ -42,9 +50,9 @@ from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
 from lfd_torch.gmm.gaussian import GaussianBank
-from lfd_torch.modulation import Branch, Modulation, modulated_velocity_unchecked
+from lfd_torch.modulation import Branch, Modulation, modulated_velocity_single, modulated_velocity_unchecked
 from lfd_torch.rollout import Disturbance, RolloutResult, rollout
-from lfd_torch.skills.arrival import Arrival, rate_floor, speed_cap
+from lfd_torch.skills.arrival import Arrival, rate_floor, shape_single, speed_cap
 from lfd_torch.skills.library import SkillLibrary
 from lfd_torch.skills.stack import PrimitiveStack
 
@@ -57,6 +65,21 @@ CHUNK = 1024
 #: per step present); smaller ones (a control tick) evaluate every step for every row and keep their own. Measured
 #: crossover on Multi_Models_3 (14 steps, all present): equal cost at 256 rows, grouped 2.5x faster at 1,000.
 GROUPED_MIN_ROWS = 256
+
+
+def _single_fields(x: Tensor, g: Tensor, P: Tensor, W: Tensor, b: Tensor, c: Tensor, A: Tensor, Qh: Tensor,
+                   const: Tensor, S: Tensor, *, entropy: bool) -> Tensor:  # fmt: skip
+    """[f_m(x), e, P_m e, -H2_m(x) (if ``entropy``)] of one state x (d,), e = x - g_m: the tensor part of
+    :meth:`SkillEngine.tick_velocity`, from the step's tables (g_m, P_m and
+    :meth:`~lfd_torch.skills.stack.PrimitiveStack.single_tables`); what ``compile_tick`` compiles."""
+    d = x.shape[0]
+    e = x - g
+    log_w = c - (torch.addmv(b, W, x).view(d, -1) ** 2).sum(0)  # (K,) log pi_k + log N(x; mu_k, Sigma_k)
+    f = torch.softmax(log_w, 0) @ (A @ e).view(-1, d)  # means A_k e (A_k x - A_k g_m would cancel near g_m)
+    if not entropy:
+        return torch.cat([f, e, P @ e])
+    terms = torch.addmv(torch.addmv(const, Qh, torch.outer(e, e).view(-1)), S, log_w)
+    return torch.cat([f, e, P @ e, torch.logsumexp(terms, 0).view(1)])
 
 
 class SubtaskBank:
@@ -187,9 +210,12 @@ class SkillEngine:
         modulation: a :class:`~lfd_torch.modulation.Modulation` or its mode name (``none``, ``large``, ``small``,
             ``full``).
         arrival: step completion ball, rate floor and speed cap (:class:`~lfd_torch.skills.arrival.Arrival`).
-        compile_tick: compile the single-state velocity of :meth:`tick` with ``torch.compile`` (fixed shapes): a
-            few seconds on the first tick, then ~6x fewer microseconds per tick (a C++ compiler must be installed;
-            results equal the eager ones to rounding). The batched paths stay eager.
+        compile_tick: compile the tensor part of the single-state velocity (:meth:`tick_velocity`) with
+            ``torch.compile`` (fixed shapes, one graph per entropy setting for every step): a few seconds on the
+            first ticks, then one fused call instead of ~10 small kernels, for devices where kernel launches
+            dominate; on a CPU the eager kernels cost less than a compiled call's entry (measured on
+            ``experiments/bench_engine.py``). Needs a C++ compiler on a CPU; results equal the eager ones to
+            rounding. The batched paths stay eager.
 
     Attributes:
         tree: the py_trees behaviour tree (:class:`~lfd_torch.skills.tree.SkillTree`).
@@ -240,7 +266,13 @@ class SkillEngine:
         d = library.dim
         self._goals_fm = self.goals.T.contiguous()  # (d, M)
         self._P_fm = self._P.reshape(-1, d * d).T.contiguous()  # (d*d, M): rows (a, b) of P_m
-        self.tick_velocity = torch.compile(self.velocity, dynamic=False) if compile_tick else self.velocity
+        # single-state tick (:meth:`tick_probe`, :meth:`tick_velocity`): per-step tables and constants, no gathers
+        M = library.n_steps
+        self._tick_tables = [(self.goals[m], self._P[m], *self._stack.single_tables(m)) for m in range(M)]
+        self._tick_consts = list(zip(self._h2_ref.tolist(), self._rate.tolist(), self._v_hi.tolist()))
+        self._tick_r2 = torch.tensor(self.arrival_radius**2, dtype=f["dtype"]).item()  # as a tensor compares it
+        self._tiny = torch.finfo(f["dtype"]).tiny
+        self._tick_fields = torch.compile(_single_fields, dynamic=False) if compile_tick else _single_fields
         from lfd_torch.skills.tree import SkillTree
 
         self.tree = SkillTree(self)
@@ -494,6 +526,56 @@ class SkillEngine:
         branch = torch.full((B,), int(Branch.AT_GOAL), dtype=torch.int8, device=x.device)
         branch.index_copy_(0, rows, res.branch)
         return out, branch
+
+    # ------------------------------------------------------------------ single-state tick
+    def tick_probe(self, x: Tensor) -> tuple[list[float], list[bool]]:
+        """log p(x|A_m) of every step (:class:`SubtaskBank`, as :meth:`log_density`) and whether x lies in each
+        step's arrival ball (:meth:`reached`), at one checked state x (d,) in the engine's dtype and device: the
+        quantities the tree's leaves decide on, as Python lists from one evaluation (one device sync)."""
+        M = self._bank.n_steps
+        e = x - self.goals
+        vals = torch.cat([self._bank.log_density_fm(x.view(-1, 1)).view(-1), (e * e).sum(-1)]).tolist()
+        return vals[:M], [v < self._tick_r2 for v in vals[M:]]
+
+    def tick_velocity(
+        self, x: Tensor, step: int, inside: bool, densities: tuple[float, float] | None
+    ) -> tuple[Tensor, Branch]:
+        """:meth:`velocity` of one checked state x (d,) in step ``step`` (not done), for the tree's drive leaves.
+
+        The tensor part (f_m(x), H2_m(x) only where the branch can use it, e = x - g_m, P_m e) is one short
+        evaluation with the step's own tables (:meth:`~lfd_torch.skills.stack.PrimitiveStack.single_tables`,
+        compiled with ``compile_tick``); the modulation, rate floor and speed cap of those few d-vectors then run
+        in Python floats (:func:`~lfd_torch.modulation.modulated_velocity_single`,
+        :func:`~lfd_torch.skills.arrival.shape_single`: the tensor formulas in the same order; a float32 engine's
+        velocity is rounded to float32 once, at the end).
+
+        Args:
+            x: (d,) position.
+            step: the active step m.
+            inside: x in A_m, as decided by the tree.
+            densities: (log p(x|A_m), log p(x|A_m-)) as floats; needed by modes ``large`` and ``full``.
+
+        Returns:
+            (d,) velocity and the branch.
+        """
+        mod = self.modulation
+        own = other = None
+        outside = False
+        if mod.uses_subtask_densities:
+            if densities is None:
+                raise InvalidArgumentError(f"densities are required in modulation mode {mod.mode!r}")
+            own, other = densities
+            other = -math.inf if inside else other  # the tree's decision rules
+            outside = own < other
+        entropy = mod.uses_entropy and not outside  # H2 only matters off the large-scale branch
+        vals = self._tick_fields(x, *self._tick_tables[step], entropy=entropy).tolist()
+        d = x.shape[0]
+        f, e, Pe = vals[:d], vals[d : 2 * d], vals[2 * d : 3 * d]
+        h2_ref, rate, v_hi = self._tick_consts[step]
+        u, branch = modulated_velocity_single(e, f, own, other, -vals[3 * d] if entropy else None, h2_ref, mod.mode,
+                                              mod.lambda_limit, mod.radial_floor)  # fmt: skip
+        u = shape_single(u, e, Pe, rate, v_hi, self._slow_radius, self._tiny)
+        return torch.tensor(u, **self._f), branch
 
     # ------------------------------------------------------------------ public ticks
     def tick(self, x: Tensor, step: int | None = None, route: int | None = None) -> TickResult:

@@ -104,6 +104,30 @@ class PrimitiveStack:
             const = self._overlap_const.view(M, K, K)[m, i, j] + torch.where(i == j, 0.0, math.log(2.0)).to(**f)
             pair = lw[i] + lw[j] + quadratic_weights(-0.5 * Q[m, i, j], zero, const)  # (P_m, F): one term of H2
             self._groups.append((lw, self.A[m, :k].reshape(k * d, d).contiguous(), pair))
+        # single-state tables (one step, padded K: one shape for every step), see :meth:`single_tables`
+        aff = self._bank._affine.view(M, K, d, d + 1).transpose(1, 2)  # rows (a, k): whitening row a of Gaussian k
+        W, b = aff[..., :d].reshape(M, d * K, d), aff[..., d].reshape(M, d * K)
+        pad = torch.finfo(dtype).min / 8  # a finite -inf: exp gives 0 all the same, and 0 * pad = 0 in products
+        c = torch.where(self.log_pi > -math.inf, self._bank._log_norm.view(M, K) + self.log_pi, pad)
+        A = self._A_fm.view(M, K * d, d)
+        Qh = -0.5 * self._Q_pairs.permute(1, 2, 0)  # (M, P, d*d)
+        S = torch.zeros((I.numel(), K), **f)  # row p adds log w_i + log w_j of pair p
+        S.index_put_((torch.arange(I.numel(), device=device), I), torch.ones(I.numel(), **f), accumulate=True)
+        S.index_put_((torch.arange(I.numel(), device=device), J), torch.ones(I.numel(), **f), accumulate=True)
+        self._single = [(W[m].contiguous(), b[m].contiguous(), c[m].contiguous(), A[m].contiguous(),
+                         Qh[m].contiguous(), self._const_pairs[m].contiguous(), S) for m in range(M)]  # fmt: skip
+
+    def single_tables(self, step: int) -> tuple[Tensor, ...]:
+        """Tables of step m for one state (the single-state tick, :meth:`SkillEngine.tick_velocity`), padded to K:
+        W (d K, d) and b (d K,), whose rows give the whitened offsets sqrt(1/2) L_k^-1 (x - mu_k) (rows (a, k));
+        c (K,) log pi_k + the log normaliser (padding: finfo.min / 8, finite so that the pair product below stays
+        free of 0 * inf); A (K d, d) the stacked A_k; -Q_ij / 2 (P, d*d) and the constants (P,) of the pairs
+        i <= j of :meth:`evaluate`; S (P, K), S log w = log w_i + log w_j of every pair.
+
+        With them log w = c - ||W x + b||^2 (summed over a), f = softmax(log w) . A_k e and
+        H2 = -logsumexp(const - e^T Q_ij e / 2 + S log w), e = x - g_m: the formulas of :meth:`evaluate`.
+        """
+        return self._single[step]
 
     @staticmethod
     def _own_block(values: Tensor, step: Tensor) -> Tensor:

@@ -21,12 +21,17 @@ returns SUCCESS for it whatever x is), which is what a ``memory=True`` Sequence 
 function of (x, route, progress): the vectorised :meth:`~lfd_torch.skills.SkillEngine.decide` can take exactly
 the same decisions, and a test checks that it does.
 
+The condition leaves decide on the densities and arrival tests of every step at x, evaluated once per tick at
+the first leaf that needs them (:meth:`~lfd_torch.skills.SkillEngine.tick_probe`, Python floats): a leaf's test is
+then a comparison, not a tensor call and a device sync of its own.
+
 Decisions are recorded by :class:`DecisionVisitor` (a py_trees visitor), never printed. :meth:`SkillTree.render`
 writes the tree as ASCII (and, with graphviz installed, as an image).
 """
 
 from __future__ import annotations
 
+import math
 import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -50,12 +55,26 @@ class _Context:
 
     def __init__(self, engine: SkillEngine):
         self.engine = engine
-        self.x: Tensor | None = None  # (1, d)
+        self.x: Tensor | None = None  # (d,), the engine's dtype and device
         self.route = -1
         self.index = 0
         self.velocity: Tensor | None = None
         self.branch = Branch.AT_GOAL
-        self.densities: dict[int, tuple[Tensor, Tensor]] = {}  # step -> (log p(x|A_m), log p(x|A_m-)) this tick
+        self.densities: dict[int, tuple[float, float]] = {}  # step -> (log p(x|A_m), log p(x|A_m-)) this tick
+        self._probe: tuple[list[float], list[bool]] | None = None
+
+    def reset(self, x: Tensor, route: int, index: int) -> None:
+        self.x, self.route, self.index = x, route, index
+        self.velocity, self.branch = None, Branch.AT_GOAL
+        self.densities = {}
+        self._probe = None
+
+    def probe(self) -> tuple[list[float], list[bool]]:
+        """log p(x|A_m) and arrival of every step at x (:meth:`SkillEngine.tick_probe`), evaluated once per tick at
+        the first leaf that needs them."""
+        if self._probe is None:
+            self._probe = self.engine.tick_probe(self.x)
+        return self._probe
 
 
 class DecisionVisitor(py_trees.visitors.VisitorBase):
@@ -85,8 +104,13 @@ class ChooseRoute(_Leaf):
 
     def update(self) -> Status:
         c = self.ctx
-        if c.route < 0:
-            c.route = int(c.engine.choose_route(c.x)[0])
+        if c.route < 0:  # the most likely first subtask space, the first route on ties (SkillEngine.choose_route)
+            first = [steps[0] for steps in c.engine.routes]
+            if len(first) == 1:
+                c.route = 0
+            else:
+                ld = c.probe()[0]
+                c.route = max(range(len(first)), key=lambda r: (ld[first[r]], -r))
         return Status.SUCCESS if c.route == self.route else Status.FAILURE
 
 
@@ -94,13 +118,12 @@ class Reached(_Leaf):
     def __init__(self, ctx: _Context, position: int, step: int):
         super().__init__(f"Reached {step}", ctx)
         self.position, self.step = position, step
-        self._step_t = torch.tensor([step], device=ctx.engine.goals.device)
 
     def update(self) -> Status:
         c = self.ctx
         if c.index > self.position:
             return Status.SUCCESS
-        if bool(c.engine.reached(c.x, self._step_t)[0]):
+        if c.probe()[1][self.step]:  # ||x - g_m|| < r_a
             c.index = self.position + 1
             return Status.SUCCESS
         return Status.FAILURE
@@ -110,12 +133,13 @@ class InSubtask(_Leaf):
     def __init__(self, ctx: _Context, step: int):
         super().__init__(f"InSubtask {step}", ctx)
         self.step = step
-        self._step_t = torch.tensor([step], device=ctx.engine.goals.device)
 
     def update(self) -> Status:
-        own, other = self.ctx.engine.own_other(self.ctx.x, self._step_t)
+        ld = self.ctx.probe()[0]
+        own = ld[self.step]
+        other = max((v for k, v in enumerate(ld) if k != self.step), default=-math.inf)
         self.ctx.densities[self.step] = (own, other)
-        return Status.SUCCESS if bool(own[0] >= other[0]) else Status.FAILURE
+        return Status.SUCCESS if own >= other else Status.FAILURE
 
 
 class _Drive(_Leaf):
@@ -124,14 +148,10 @@ class _Drive(_Leaf):
     def __init__(self, name: str, ctx: _Context, step: int):
         super().__init__(f"{name} {step}", ctx)
         self.step = step
-        self._step_t = torch.tensor([step], device=ctx.engine.goals.device)
-        self._done = torch.zeros(1, dtype=torch.bool, device=ctx.engine.goals.device)
-        self._inside = torch.full((1,), self.inside, dtype=torch.bool, device=ctx.engine.goals.device)
 
     def update(self) -> Status:
         c = self.ctx
-        v, branch = c.engine.tick_velocity(c.x, self._step_t, self._done, self._inside, c.densities.get(self.step))
-        c.velocity, c.branch = v[0], Branch(int(branch[0]))
+        c.velocity, c.branch = c.engine.tick_velocity(c.x, self.step, self.inside, c.densities.get(self.step))
         return Status.RUNNING
 
 
@@ -193,10 +213,7 @@ class SkillTree:
         check_int(step, "step", low=0, allow_none=True)
         check_int(route, "route", low=0, allow_none=True)
         c = self.ctx
-        c.x = x.to(**eng._f).reshape(1, -1)
-        c.route, c.index = self._progress(step, route)
-        c.velocity, c.branch = None, Branch.AT_GOAL
-        c.densities = {}
+        c.reset(x.to(**eng._f), *self._progress(step, route))
         self._tick_once()
         done = self.root.status is Status.SUCCESS
         if done:
