@@ -64,7 +64,7 @@ from lfd_torch.segmentation import segment
 from lfd_torch.segmentation.synthetic import FAMILIES, SyntheticSteps
 
 LASA_SHAPES = ("Multi_Models_1", "Multi_Models_2", "Multi_Models_3", "Multi_Models_4", "Angle", "Sshape")
-METHODS = ("segment", "ruptures", "ruptures_l2", "hmmlearn")
+METHODS = ("segment", "segment_collapsed", "ruptures", "ruptures_l2", "hmmlearn")
 TOLERANCE = 0.03  # a switch is found when a detected one lies within 3 % of the demonstration's length
 SAVGOL_WINDOW = 25  # samples (0.25 s at dt = 0.01 s)
 PENALTY_C = 1.0  # PELT penalty = PENALTY_C * log(T) * n_features
@@ -164,13 +164,14 @@ def _sequences(syn: SyntheticSteps) -> list[np.ndarray]:
     return [syn.demos.positions[i, : int(n)].cpu().numpy() for i, n in enumerate(syn.demos.lengths)]
 
 
-def detect_segment(syn: SyntheticSteps, seed: int) -> tuple[list[list[int]], dict[str, Any]]:
-    """``lfd_torch.segmentation.segment`` with its default settings."""
+def detect_segment(syn: SyntheticSteps, seed: int, selection: str = "joint") -> tuple[list[list[int]], dict[str, Any]]:
+    """``lfd_torch.segmentation.segment`` with its default settings (``segment_collapsed``: the returned sample
+    chosen by the collapsed score, ``selection="collapsed"``)."""
     from lfd_torch.segmentation import SegmentationWarning
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SegmentationWarning)
-        seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed))
+        seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), selection=selection)
     return [switches_from_labels(lab) for lab in seg.labels], {"n_steps": seg.n_steps}
 
 
@@ -221,6 +222,7 @@ def detect_hmmlearn(syn: SyntheticSteps, seed: int) -> tuple[list[list[int]], di
 
 DETECTORS: dict[str, Callable[[SyntheticSteps, int], tuple[list[list[int]], dict[str, Any]]]] = {
     "segment": detect_segment,
+    "segment_collapsed": lambda syn, seed: detect_segment(syn, seed, "collapsed"),
     "ruptures": _pelt("rbf"),
     "ruptures_l2": _pelt("l2"),
     "hmmlearn": detect_hmmlearn,

@@ -22,6 +22,8 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--shapes", nargs="+", default=[f"Multi_Models_{i}" for i in range(1, 5)])
     ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--selection", choices=["joint", "collapsed"], default="joint",
+                    help="segment(selection=...): how the returned sample is chosen")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     print("| shape | modal steps per demo (seeds of", args.seeds, ") | modal steps per route | distinct route groupings |")
@@ -32,7 +34,7 @@ def main(argv: list[str] | None = None) -> None:
         groupings = collections.Counter()
         route_steps: dict[tuple[int, ...], collections.Counter] = collections.defaultdict(collections.Counter)
         for seed in range(args.seeds):
-            seg = segment(demos, generator=torch.Generator().manual_seed(seed))
+            seg = segment(demos, generator=torch.Generator().manual_seed(seed), selection=args.selection)
             for i in range(demos.n_demos):
                 counts[i][len(seg.step_sequence(i))] += 1
             groups = sorted(tuple(i for i in range(demos.n_demos) if int(seg.route_of[i]) == r) for r in range(seg.n_routes))

@@ -729,3 +729,15 @@ def test_collapsed_evidence_prefers_one_state_per_leg(corner):
     scores = [float(run._collapsed_score(s, torch.ones(1, 1, k, dtype=torch.bool), ph, run.alpha, run.kappa,
                                          run.mass)) for s, k, ph in ((split, 2, phases), (one, 1, torch.arange(59).clamp_max(2).view(1, 1, -1)))]  # fmt: skip
     assert (scores[0] > scores[1]) == corner
+
+
+def test_collapsed_selection_returns_the_best_collapsed_score_of_the_same_chains():
+    """selection does not change the chains (no extra randomness), only which of their sweeps is returned: the
+    collapsed choice has the highest collapsed score among them, the joint choice the highest joint one."""
+    syn = synthetic(*MUTATION_CASE)
+    joint = segment(syn.demos, generator=torch.Generator().manual_seed(0))
+    coll = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="collapsed")
+    assert coll.info["collapsed_log_prob"] >= joint.info["collapsed_log_prob"]
+    assert joint.info["log_prob"] >= coll.info["log_prob"]
+    with pytest.raises(InvalidArgumentError, match="selection"):
+        segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="best")

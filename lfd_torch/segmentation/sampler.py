@@ -95,9 +95,10 @@ class SamplerResult:
         noise: (K, d, d) direction noise covariance of every state.
         centre: (d,) and radius: () standardisation of the positions, x~ = (x - centre) / radius.
         log_prob: joint log probability of the returned sample (the sampled fields, noise and transition weights
-            included; the chain and sweep with the highest one is returned).
+            included; with ``selection="joint"`` the chain and sweep with the highest one is returned).
         collapsed_log_prob: log p(u, s, F | z) of the returned (s, F), every continuous parameter integrated out
-            (:meth:`_Run._collapsed_score`): comparable across samples with different numbers of states.
+            (:meth:`_Run._collapsed_score`): comparable across samples with different numbers of states (the
+            criterion of ``selection="collapsed"``).
         trace: (C, n_iterations) joint log probability of every chain after every sweep.
         n_features_trace: (C, n_iterations) number of features owned by at least one sequence.
         chain: index of the chain the sample comes from.
@@ -148,10 +149,19 @@ HYPERPARAMETER_RANGES: dict[str, tuple[type, float, float, bool, bool]] = {
 }
 
 
+#: How the returned sample is chosen among the chains' sweeps after burn-in (module docstring, "Which sample").
+SELECTIONS = ("joint", "collapsed")
+
+
 def check_hyperparameters(**values: object) -> None:
     """Raise InvalidArgumentError naming the first hyperparameter outside :data:`HYPERPARAMETER_RANGES` (booleans
-    ``resample_hyperparameters`` and ``progress`` must be bool; ``robust_dof`` may be None)."""
+    ``resample_hyperparameters`` and ``progress`` must be bool; ``robust_dof`` may be None; ``selection`` is one of
+    :data:`SELECTIONS`)."""
     for name, value in values.items():
+        if name == "selection":
+            if value not in SELECTIONS:
+                raise InvalidArgumentError(f"selection must be one of {SELECTIONS}, got {value!r}")
+            continue
         if name in ("resample_hyperparameters", "progress"):
             if not isinstance(value, bool):
                 raise InvalidArgumentError(f"{name} must be a bool, got {value!r}")
@@ -190,6 +200,8 @@ class BetaProcessHMMSampler:
         birth_prior_mix: probability that the birth proposal draws theta* from the prior instead of the window
             posterior (keeps the reverse death move possible for features far from the data).
         resample_hyperparameters: also sample gamma, alpha and kappa.
+        selection: "joint" (default) returns the sample with the highest joint log probability, "collapsed" the one
+            with the highest collapsed score (module docstring, "Which sample").
         progress: show a tqdm progress bar.
     """
 
@@ -211,6 +223,7 @@ class BetaProcessHMMSampler:
         birth_window: float = 0.1,
         birth_prior_mix: float = 0.1,
         resample_hyperparameters: bool = False,
+        selection: str = "joint",
         progress: bool = False,
     ) -> None:
         check_hyperparameters(
@@ -219,8 +232,9 @@ class BetaProcessHMMSampler:
             direction_noise=direction_noise, extra_dof=extra_dof, robust_dof=robust_dof, n_chains=n_chains,
             n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
             birth_window=birth_window, birth_prior_mix=birth_prior_mix,
-            resample_hyperparameters=resample_hyperparameters, progress=progress,
+            resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
         )  # fmt: skip
+        self.selection = selection
         self.feature_mass = float(feature_mass)
         self.feature_concentration = float(feature_concentration)
         self.transition_concentration = float(transition_concentration)
@@ -744,15 +758,16 @@ class _Run:
             self._sample_parameters()
             if cfg.resample_hyperparameters:
                 self._sample_hyperparameters()
-            lp = self._joint_log_prob()
-            trace[:, it] = lp.cpu()
+            joint = self._joint_log_prob()
+            trace[:, it] = joint.cpu()
+            collapsed = self._collapsed_log_prob()
+            lp = collapsed if cfg.selection == "collapsed" else joint
             n_feat[:, it] = self.F.any(1).sum(-1).cpu()
             if it >= start_keep:
                 better = lp > best_lp
-                collapsed = self._collapsed_log_prob() if bool(better.any()) else None
                 for c in torch.nonzero(better).reshape(-1).tolist():
                     best_lp[c] = lp[c]
-                    best[c] = {**self._snapshot(c), "collapsed": float(collapsed[c])}
+                    best[c] = {**self._snapshot(c), "joint": float(joint[c]), "collapsed": float(collapsed[c])}
         c_best = int(torch.argmax(best_lp))
         snap = best[c_best]
         assert snap is not None
@@ -765,7 +780,7 @@ class _Run:
             noise=snap["noise"],
             centre=self.obs.centre,
             radius=self.obs.radius,
-            log_prob=float(best_lp[c_best]),
+            log_prob=snap["joint"],
             collapsed_log_prob=snap["collapsed"],
             trace=trace,
             n_features_trace=n_feat,

@@ -787,6 +787,7 @@ def segment(
     birth_window: float = 0.1,
     birth_prior_mix: float = 0.1,
     resample_hyperparameters: bool = False,
+    selection: str = "joint",
     progress: bool = False,
 ) -> Segmentation:
     """Segment demonstrations into steps with the BP-GM-HMM (no number of steps is given).
@@ -831,7 +832,7 @@ def segment(
         direction_noise=direction_noise, extra_dof=extra_dof, robust_dof=robust_dof,
         n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
         birth_window=birth_window, birth_prior_mix=birth_prior_mix,
-        resample_hyperparameters=resample_hyperparameters, progress=progress,
+        resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
     )  # fmt: skip
     demos = _check_demos(demos, min_length)
     if demos.dim < 2:
