@@ -9,11 +9,17 @@
     python experiments/bench_robot.py                         # both, JSON into outputs/bench_robot/
     python experiments/bench_robot.py --only kinematics
     python experiments/bench_robot.py --publish               # results/tables/scooping_bench.json
+
+The allocator is set as ``make bench`` sets it for the engine benchmark (``MALLOC_MMAP_THRESHOLD_=33554432
+MALLOC_TRIM_THRESHOLD_=1073741824``, here through ``mallopt`` at start-up, recorded in the JSON): without it glibc
+unmaps the 10,000-row temporaries of every call and faults them in again, which made the float32 FK + Jacobian
+60-68 ms instead of 35-48 ms in our runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import os
 import platform
@@ -25,6 +31,17 @@ from pathlib import Path
 import torch
 
 torch.set_num_threads(int(os.environ.get("LFD_THREADS", "1")))
+
+
+def keep_large_allocations() -> bool:
+    """glibc mallopt: serve blocks below 32 MiB from the heap and trim it only above 1 GiB (False off glibc)."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return False
+    m_trim_threshold, m_mmap_threshold = -1, -3  # <malloc.h>
+    return bool(libc.mallopt(m_mmap_threshold, 32 * 1024 * 1024)) and bool(
+        libc.mallopt(m_trim_threshold, 1024 * 1024 * 1024))
 
 from lfd_torch.robot import BaxterArm
 from lfd_torch.robot.trials import SuccessCriteria, plan_disturbances, run_trials, start_configurations
@@ -78,9 +95,11 @@ def bench_trials(n: int, mode: str, seed: int, budget_s: float, workers: int) ->
     res = run_trials(task, ctl, robot.plant, q0, disturbances=plan, budget_s=budget_s, jump_seed=seed,
                      criteria=crit, away=float(cfg.away), workers=workers)  # fmt: skip
     wall = time.perf_counter() - t0
-    ok = sum(r["success"] for r in res.rows)
+    ok = sum(r["success"] for r in res.rows)  # strict: every forbidden contact fails, pushed or not
+    lenient = sum(r["lenient_success"] for r in res.rows)  # diagnostic: contacts begun by a force pulse excused
     fired = sum(r["disturbance"] != "none" for r in res.rows)
-    return {"trials": n, "disturbed": fired, "mode": mode, "workers": workers, "successes": ok, "wall_s": wall,
+    return {"trials": n, "disturbed": fired, "mode": mode, "workers": workers, "successes": ok,
+            "lenient_successes": lenient, "wall_s": wall,
             "learn_s": learn_s, "simulated_s": float(res.lengths.sum()) * res.dt, "budget_s": budget_s}
 
 
@@ -88,7 +107,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", choices=("kinematics", "trials"), default=None)
     ap.add_argument("--configs", type=int, default=10_000)
-    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--repeats", type=int, default=50)
     ap.add_argument("--trials", type=int, default=500)
     ap.add_argument("--mode", default="full")
     ap.add_argument("--seed", type=int, default=0)
@@ -97,7 +116,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--publish", action="store_true")
     args = ap.parse_args(argv)
     report: dict = {"python": sys.version.split()[0], "torch": torch.__version__, "threads": torch.get_num_threads(),
-                    "cpus": os.cpu_count(), "machine": platform.machine()}  # fmt: skip
+                    "cpus": os.cpu_count(), "machine": platform.machine(),
+                    "large_allocations_kept": keep_large_allocations()}  # fmt: skip
     if args.only in (None, "kinematics"):
         report["kinematics"] = bench_kinematics(args.configs, args.repeats)
         print("FK + Jacobian of %d configurations: float32 %.1f ms, float64 %.1f ms (median)" % (

@@ -352,6 +352,17 @@ def test_check_trials_reasons(task, plant, robot):
     assert check(tip, q, torch.tensor([last_in + 1]), -1)["reason"] == "never left the can after scooping"
     assert check(tip, q, lengths, T - 1, ([("spoon", "can_wall", 3.0)],))["reason"] == "contact spoon-can_wall at 3.00 s"
     assert check(tip, q, lengths, T - 1, ([("spoon", "can_bottom", 3.0)],))["success"]  # not a forbidden contact
+    # strict: a contact that a force pulse began fails as well; only the diagnostic lenient verdict excuses it
+    wall = ("spoon", "can_wall", 3.0)
+    pushed = check_trials(task, plant.scene, robot.arm, tip, q, lengths, np.array([T - 1]), ([wall],), crit,
+                          push_contacts=([wall],))[0]  # fmt: skip
+    assert not pushed["success"] and not pushed["no_contact"] and pushed["lenient_success"]
+    assert pushed["reason"] == "contact spoon-can_wall at 3.00 s (begun by a force pulse)"
+    later = ("hand", "can_wall", 4.0)  # a second contact after the pulse fails the lenient verdict too
+    both = check_trials(task, plant.scene, robot.arm, tip, q, lengths, np.array([T - 1]), ([wall, later],), crit,
+                        push_contacts=([wall],))[0]  # fmt: skip
+    assert not both["success"] and not both["lenient_success"]
+    assert ok["lenient_success"] and not check(tip, q, lengths, -1)["lenient_success"]
     bad_q = q.clone()
     bad_q[0, 100, 3] = -0.2  # e1 below -0.05 - tol
     assert check(tip, bad_q, lengths, T - 1)["reason"] == "joint limit violated at 1.00 s"
@@ -412,6 +423,42 @@ def test_jump_and_force_disturbances(task, robot):
     assert torch.equal(again.tip, res_none.tip)
 
 
+def test_contact_caused_by_a_force_pulse_fails_the_trial(task, robot):
+    """The success criterion is strict: a pulse (far beyond the trials' 90 N) that shoves the spoon down into the
+    scene fails the trial on that contact, although the contact began while the pulse acted."""
+    ctl = controller_for(task, robot, "full")
+    q0 = start_configurations(task, robot.arm, 7)[:1]
+    shove = Disturbance("force", 0, 0.2, 400.0, duration=0.8, body="left_wrist", direction=(0.0, 0.0, -1.0))
+    row = run_trials(task, ctl, robot.plant, q0, disturbances=[shove], budget_s=1.5).rows[0]
+    assert row["disturbance"] == "force" and row["push_contacts"] != ""
+    assert set(row["push_contacts"].split(";")) <= set(row["contacts"].split(";"))
+    assert not row["no_contact"] and not row["success"]  # (the stored reason is the first failed check)
+
+
+def test_summary_rate_is_strict_and_reads_old_tables():
+    import sys
+    from pathlib import Path
+
+    import pandas as pd
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+    import scooping
+
+    rows = [dict(kind="disturbed", method="full", stage="scoop", disturbance="force", label="large", success=s,
+                 lenient_success=lenient, reason=r, push_contacts=pc)
+            for s, lenient, r, pc in ((True, True, "", ""), (False, True, "contact spoon-can_wall at 1.00 s (begun by a "
+                                      "force pulse)", "spoon-can_wall"), (False, False, "never below the sugar surface", ""),
+                                      (True, True, "", ""))]  # fmt: skip
+    table = pd.DataFrame(rows)
+    head = scooping.summary(table).iloc[0]
+    assert head.n == 4 and head.successes == 2 and head.rate == 0.5 and head.lenient_rate == 0.75
+    assert "contact spoon-can_wall (begun by a force pulse) x1" in head.failures
+    # a table written before the strict rule (success excused push contacts, no lenient column) reads the same
+    old = table.drop(columns="lenient_success").assign(success=table.lenient_success)
+    again = scooping.summary(old).iloc[0]
+    assert again.rate == 0.5 and again.lenient_rate == 0.75
+
+
 @pytest.mark.slow
 def test_experiment_run_writes_rows_summary_and_figures(tmp_path):
     import sys
@@ -443,6 +490,10 @@ def test_forked_workers_equal_one_process(task, robot):
     dist = [None, Disturbance("jump", 0, 0.2, 0.03, "small"), Disturbance("force", 0, 0.2, 40.0, duration=0.2)]
     one = run_trials(task, ctl, robot.plant, q0, disturbances=dist, budget_s=0.5, jump_seed=4)
     two = run_trials(task, ctl, robot.plant, q0, disturbances=dist, budget_s=0.5, jump_seed=4, workers=2)
-    assert torch.equal(one.tip, two.tip) and torch.equal(one.steps, two.steps)
+    # the same trials, seeds and pushes: the same decisions and paths; the batched engine's arithmetic depends on
+    # the batch size in the last bit (its grouped and per-row paths agree to rounding), so the paths agree to 1e-12
+    torch.testing.assert_close(two.tip, one.tip, atol=1e-12, rtol=0)
+    assert torch.equal(one.steps, two.steps) and torch.equal(one.branches, two.branches)
+    assert [(r["success"], r["reason"]) for r in two.rows] == [(r["success"], r["reason"]) for r in one.rows]
     assert [r["trial"] for r in two.rows] == [0, 1, 2]
     assert [r["disturbance"] for r in two.rows] == [r["disturbance"] for r in one.rows]

@@ -195,13 +195,14 @@ class DLSVelocityMap:
         fixed = torch.zeros_like(q)
         for _ in range(self.iterations):
             out = (qdot < qd_lo) | (qdot > qd_hi)
-            if not bool(out.any()):
+            redo = out.any(-1, keepdim=True)  # only the arms with a violated bound are re-solved: the others keep
+            if not bool(redo.any()):  # their qdot bit for bit, whatever else shares the batch
                 break
             fixed = torch.where(out & (free > 0), qdot.clamp(qd_lo, qd_hi), fixed)
             free = free * (~out).to(q.dtype)
             Jw = J * free[:, None, :]
             rhs = v - (J @ (fixed * (1 - free))[..., None]).squeeze(-1)
-            qdot = free * dls(Jw, rhs, z * free) + (1 - free) * fixed
+            qdot = torch.where(redo, free * dls(Jw, rhs, z * free) + (1 - free) * fixed, qdot)
         return torch.minimum(torch.maximum(qdot, qd_lo), qd_hi)
 
 

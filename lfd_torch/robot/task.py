@@ -75,7 +75,9 @@ class OrientationSchedule:
 
     def nearest(self, x: Tensor, step: Tensor) -> Tensor:
         """(B,) index of the demonstration sample of step ``step`` (B,) nearest to ``x`` (B, 3)."""
-        d2 = torch.cdist(x, self.positions.to(x))  # (B, N)
+        # direct differences, not the matrix-product form: the distances (and a near-tie's argmin) of one arm then
+        # do not depend on which other arms share the batch, so split batches (workers) repeat a run exactly
+        d2 = torch.cdist(x, self.positions.to(x), compute_mode="donot_use_mm_for_euclid_dist")  # (B, N)
         other = self.steps.to(step.device)[None, :] != step[:, None]
         return d2.masked_fill(other, float("inf")).argmin(-1)
 

@@ -20,8 +20,14 @@ it lies inside A_m; a small jump must also land at least ``away`` m from the ste
 Success (:class:`SuccessCriteria`, checked per trial; the first failed check is the stored reason): the tip went
 at least ``sugar_depth`` m below the sugar surface inside the can and later left the can (above its rim); it then
 reached the region above the cup (within the cup radius, between the rim and ``cup_height`` m above it); no contact
-of spoon, hand or arm with the can walls, the cup walls or the table; joint limits held (``limit_tol`` rad); the
-engine finished the task within the time budget, ending within ``final_tol`` m of the final attractor.
+of spoon, hand or arm with the can walls, the cup walls or the table at any time of the trial, whatever caused it (a
+force pulse that shoves the spoon into the wall fails the trial as any other contact does); joint limits held
+(``limit_tol`` rad); the engine finished the task within the time budget, ending within ``final_tol`` m of the final
+attractor.
+
+Diagnostic only (never part of ``success``): contacts that begin while a force pulse acts or within
+``push_grace`` s after it are also listed in ``push_contacts``, and ``lenient_success`` is the verdict that would
+excuse them (the former, lenient rule); it shows how many failures a push causes directly.
 """
 
 from __future__ import annotations
@@ -144,9 +150,10 @@ def plan_disturbances(
 class SuccessCriteria:
     """Thresholds of the per-trial success checks (module docstring); lengths m, angles rad, time s.
 
-    A contact that begins while an external force pulse acts (or ``push_grace`` s after it) is the push's doing
-    (a person shoving the spoon against the wall), not the controller's, for as long as it lasts without a break:
-    such contacts are stored apart and fail no check. Contacts that begin later fail ``no_contact``.
+    Every contact of the robot with an object in ``forbidden`` fails ``no_contact``, also one that a force pulse
+    causes. ``push_grace`` only sets the diagnostic attribution: a contact that begins while a force pulse acts
+    or ``push_grace`` s after it (and lasts without a break) is listed in ``push_contacts``, and
+    ``lenient_success`` would excuse it; ``success`` does not.
     """
 
     sugar_depth: float = 0.005
@@ -163,7 +170,9 @@ class TrialBatch:
     """Results of :func:`run_trials`.
 
     Attributes:
-        rows: one dict per trial: success, reason, the checks, time to finish (s), disturbance and its label.
+        rows: one dict per trial: success, reason, the checks, time to finish (s), disturbance and its label,
+            ``contacts`` (every robot-scene contact pair seen), ``push_contacts`` (those a force pulse began) and
+            ``lenient_success`` (diagnostic: the verdict that excuses ``push_contacts``; not the success rate).
         tip: (B, T, 3) tip positions at 100 Hz (m); lengths: (B,) valid samples (frozen after finishing).
         q: (B, T, 7) joint angles (rad); steps: (B, T) long active step; branches: (B, T) int8 branch.
         disturbance_sample: (B,) long sample at which the disturbance started (-1: none).
@@ -283,7 +292,9 @@ def run_trials(
         criteria: success thresholds. away: a small jump's least distance to the step's training data (m).
         progress: optional tqdm-like object with ``update(n)`` called once per tick.
         workers: processes (``fork``) that split the trials; each runs its share with one torch thread, the
-            results are merged in trial order and equal those of ``workers=1``.
+            results are merged in trial order and equal those of ``workers=1`` up to rounding (the batched
+            engine's last bits depend on how many trials share a batch; its grouped path for >= 256 rows and its
+            per-row path agree to rounding).
         trial_offset: index of the first trial (seeds the jump directions of trial ``trial_offset + i``).
     """
     if not isinstance(q0, Tensor) or q0.ndim != 2 or q0.shape[1] != 7:
@@ -319,8 +330,8 @@ def run_trials(
     q_log = torch.zeros(B, T, 7, dtype=torch.float32)  # float32 keeps 500 trials x 40 s in memory
     step_log = torch.zeros(B, T, dtype=torch.long)
     branch_log = torch.zeros(B, T, dtype=torch.int8)
-    contacts: list[list[tuple[str, str, float]]] = [[] for _ in range(B)]
-    push_contacts: list[list[tuple[str, str, float]]] = [[] for _ in range(B)]  # caused by a force pulse
+    contacts: list[list[tuple[str, str, float]]] = [[] for _ in range(B)]  # every contact (p, o, t)
+    push_contacts: list[list[tuple[str, str, float]]] = [[] for _ in range(B)]  # those a force pulse began (diagnostic)
     pushed_pairs: list[set[tuple[str, str]]] = [set() for _ in range(B)]
     stage_now = torch.zeros(B, dtype=torch.long)
     stage_since = np.zeros(B)
@@ -390,10 +401,10 @@ def run_trials(
             if c or pushed_pairs[i]:
                 pushing = force_until[i] >= 0 or (fire_sample[i] >= 0 and dist[i].kind == "force"
                                                   and t < fire_sample[i] * dt + dist[i].duration + crit.push_grace)
-                # a contact that starts while the push acts is the push's, until it ends
+                # diagnostic attribution: a contact that starts while the push acts is the push's, until it ends
                 pushed_pairs[i] = (c if pushing else c & pushed_pairs[i])
                 push_contacts[i].extend((p, o, t) for p, o in pushed_pairs[i])
-                contacts[i].extend((p, o, t) for p, o in c - pushed_pairs[i])
+                contacts[i].extend((p, o, t) for p, o in c)
             if done[j]:
                 running[i] = False
                 finished_at[i] = k
@@ -411,7 +422,8 @@ def run_trials(
     q_log = q_log.gather(1, idx[..., None].expand(B, T, 7))
     step_log = step_log.gather(1, idx)
     branch_log = branch_log.gather(1, idx)
-    checks = check_trials(task, plant.scene, arm, tip_log, q_log, lengths_t, finished_at, contacts, crit)
+    checks = check_trials(task, plant.scene, arm, tip_log, q_log, lengths_t, finished_at, contacts, crit,
+                          push_contacts=push_contacts)  # fmt: skip
     rows_out = []
     for i in range(B):
         d = dist[i]
@@ -478,8 +490,14 @@ def sugar_depth(scene: Scene, x: Tensor) -> Tensor:
 def check_trials(
     task: ScoopingTask, scene: Scene, arm: BaxterArm, tip: Tensor, q: Tensor, lengths: Tensor,
     finished_at: np.ndarray, contacts: Sequence[Sequence[tuple[str, str, float]]], crit: SuccessCriteria,
+    push_contacts: Sequence[Sequence[tuple[str, str, float]]] | None = None,
 ) -> list[dict[str, Any]]:
-    """Per-trial success checks (module docstring) on the logs (B, T, .) of :func:`run_trials`."""
+    """Per-trial success checks (module docstring) on the logs (B, T, .) of :func:`run_trials`.
+
+    ``contacts``: per trial every (part, object, time s) contact seen; each forbidden one fails ``no_contact``.
+    ``push_contacts``: the subset a force pulse began (diagnostic): ``lenient_success`` ignores those, ``success``
+    does not.
+    """
     B, T, _ = tip.shape
     valid = torch.arange(T)[None, :] < lengths[:, None]
     depth = sugar_depth(scene, tip)
@@ -504,6 +522,8 @@ def check_trials(
     out = []
     for i in range(B):
         bad = [(p, o, t) for p, o, t in contacts[i] if o in crit.forbidden]
+        excused = set(push_contacts[i]) if push_contacts is not None else set()
+        unexcused = [c for c in bad if c not in excused]
         checks = {
             "entered_sugar": bool(first_in[i] <= T),
             "left_sugar": bool(first_in[i] <= T) and bool(left[i]),
@@ -517,7 +537,7 @@ def check_trials(
             if not ok:
                 if name == "no_contact":
                     p, o, t = bad[0]
-                    reason = f"contact {p}-{o} at {t:.2f} s"
+                    reason = f"contact {p}-{o} at {t:.2f} s" + (" (begun by a force pulse)" if bad[0] in excused else "")
                 elif name == "joint_limits":
                     k = int(torch.nonzero(viol[i])[0])
                     reason = f"joint limit violated at {k * 0.01:.2f} s"
@@ -529,7 +549,8 @@ def check_trials(
                               "left_sugar": "never left the can after scooping",
                               "reached_cup": "never above the cup after scooping"}[name]  # fmt: skip
                 break
-        row = {"success": all(checks.values()), "reason": reason, **checks,
+        lenient = all(ok for name, ok in checks.items() if name != "no_contact") and not unexcused
+        row = {"success": all(checks.values()), "reason": reason, **checks, "lenient_success": lenient,
                "max_depth_mm": float(depth[i][valid[i]].max()) * 1e3, "final_error_mm": float(final_err[i]) * 1e3,
                "contacts": ";".join(sorted({f"{p}-{o}" for p, o, _ in contacts[i]}))}  # fmt: skip
         out.append(row)
