@@ -34,6 +34,7 @@ import torch
 from lfd_torch.preprocess import Preprocess
 from lfd_torch.robot.demonstration import scooping_demonstration
 from lfd_torch.segmentation import segment
+from bench_segmentation import segment_options
 
 TOLERANCE = 0.03  # fraction of the length
 
@@ -65,13 +66,13 @@ def labelling_evidence(seg, demos, labels: torch.Tensor, direction_noise: float 
     return float(ll.gather(-1, lab[:, None]).sum() + field_log_density(b, psi, prior).sum())
 
 
-def run_seed(seed: int, evidence: bool = False, selection: str = "joint") -> dict:
+def run_seed(seed: int, evidence: bool = False, selection: str = "joint", **options) -> dict:
     demo = scooping_demonstration(seed)
     demos = Preprocess()(demo.demos())
     T = demo.n_samples
     truth = (torch.nonzero(demo.stages[1:] != demo.stages[:-1]).reshape(-1) + 1).tolist()
     t0 = time.perf_counter()
-    seg = segment(demos, generator=torch.Generator().manual_seed(seed), selection=selection)
+    seg = segment(demos, generator=torch.Generator().manual_seed(seed), selection=selection, **options)
     wall = time.perf_counter() - t0
     found = seg.switches(0)
     errors = [100.0 * min(abs(f - s) for f in found) / T if found else 100.0 for s in truth]
@@ -93,13 +94,15 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--evidence", action="store_true", help="also the evidence gap found - truth (nats)")
     ap.add_argument("--selection", choices=["joint", "collapsed"], default="joint",
                     help="segment(selection=...): how the returned sample is chosen")
+    ap.add_argument("--segment-option", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="other segment() keyword arguments (numbers, or None), e.g. extra_dof=2")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     rows = []
     print("| seed | steps | true switches | found switches | error % | wall s | evidence gap (nats) |")
     print("|---|---|---|---|---|---|---|")
     for seed in range(args.seeds):
-        r = run_seed(seed, args.evidence, args.selection)
+        r = run_seed(seed, args.evidence, args.selection, **segment_options(args.segment_option))
         rows.append(r)
         print(f"| {r['seed']} | {r['steps']} | {r['truth']} | {r['found']} | {r['error_pct']} | "
               f"{r['wall_s']} | {r['evidence_gap']} |", flush=True)

@@ -46,6 +46,7 @@ each feature z-scored; the finite-difference velocities of the data are mostly n
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import logging
 import math
@@ -164,15 +165,27 @@ def _sequences(syn: SyntheticSteps) -> list[np.ndarray]:
     return [syn.demos.positions[i, : int(n)].cpu().numpy() for i, n in enumerate(syn.demos.lengths)]
 
 
-def detect_segment(syn: SyntheticSteps, seed: int, selection: str = "joint") -> tuple[list[list[int]], dict[str, Any]]:
+def detect_segment(syn: SyntheticSteps, seed: int, selection: str = "joint",
+                   **options: Any) -> tuple[list[list[int]], dict[str, Any]]:  # fmt: skip
     """``lfd_torch.segmentation.segment`` with its default settings (``segment_collapsed``: the returned sample
-    chosen by the collapsed score, ``selection="collapsed"``)."""
+    chosen by the collapsed score, ``selection="collapsed"``), or others given by ``--segment-option``."""
     from lfd_torch.segmentation import SegmentationWarning
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SegmentationWarning)
-        seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), selection=selection)
+        seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), selection=selection, **options)
     return [switches_from_labels(lab) for lab in seg.labels], {"n_steps": seg.n_steps}
+
+
+def segment_options(pairs: list[str]) -> dict[str, Any]:
+    """``["extra_dof=2", "robust_dof=None"]`` -> {"extra_dof": 2.0, "robust_dof": None} (ints stay ints)."""
+    out: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep:
+            raise SystemExit(f"--segment-option expects KEY=VALUE, got {pair!r}")
+        out[key] = None if value == "None" else int(value) if value.lstrip("-").isdigit() else float(value)
+    return out
 
 
 def _pelt(model: str) -> Callable[[SyntheticSteps, int], tuple[list[list[int]], dict[str, Any]]]:
@@ -356,7 +369,13 @@ def main() -> None:
     parser.add_argument("--families", nargs="+", default=list(FAMILIES), choices=list(FAMILIES))
     parser.add_argument("--n-demos", nargs="+", type=int, default=[1, 4])
     parser.add_argument("--json", type=str, default=None, help="write all rows to this JSON file")
+    parser.add_argument("--segment-option", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="segment() keyword arguments of the segment methods (numbers, or None), e.g. extra_dof=2")
     args = parser.parse_args()
+    options = segment_options(args.segment_option)
+    if options:
+        DETECTORS["segment"] = functools.partial(detect_segment, **options)
+        DETECTORS["segment_collapsed"] = functools.partial(detect_segment, selection="collapsed", **options)
     torch.set_num_threads(1)
     result: dict[str, Any] = {}
     if "lasa" in args.parts:

@@ -760,11 +760,13 @@ class _Run:
                 self._sample_hyperparameters()
             joint = self._joint_log_prob()
             trace[:, it] = joint.cpu()
-            collapsed = self._collapsed_log_prob()
-            lp = collapsed if cfg.selection == "collapsed" else joint
             n_feat[:, it] = self.F.any(1).sum(-1).cpu()
             if it >= start_keep:
+                collapsed = self._collapsed_log_prob() if cfg.selection == "collapsed" else None
+                lp = joint if collapsed is None else collapsed
                 better = lp > best_lp
+                if collapsed is None and bool(better.any()):  # reported with the sample: only for a new best
+                    collapsed = self._collapsed_log_prob()
                 for c in torch.nonzero(better).reshape(-1).tolist():
                     best_lp[c] = lp[c]
                     best[c] = {**self._snapshot(c), "joint": float(joint[c]), "collapsed": float(collapsed[c])}
