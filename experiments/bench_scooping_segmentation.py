@@ -34,6 +34,7 @@ import torch
 from lfd_torch.preprocess import Preprocess
 from lfd_torch.robot.demonstration import scooping_demonstration
 from lfd_torch.segmentation import segment
+from lfd_torch.segmentation.sampler import SELECTIONS
 from bench_segmentation import segment_options
 
 TOLERANCE = 0.03  # fraction of the length
@@ -92,7 +93,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seeds", type=int, default=10, help="generator seeds 0..N-1")
     ap.add_argument("--json", type=str, default=None)
     ap.add_argument("--evidence", action="store_true", help="also the evidence gap found - truth (nats)")
-    ap.add_argument("--selection", choices=["joint", "collapsed"], default="joint",
+    ap.add_argument("--selection", choices=list(SELECTIONS), default="joint",
                     help="segment(selection=...): how the returned sample is chosen")
     ap.add_argument("--segment-option", nargs="+", default=[], metavar="KEY=VALUE",
                     help="other segment() keyword arguments (numbers, or None), e.g. extra_dof=2")

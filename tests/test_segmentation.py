@@ -8,6 +8,7 @@ within 3 % of that demonstration's length.
 
 from __future__ import annotations
 
+import collections
 import functools
 import inspect
 import math
@@ -741,3 +742,40 @@ def test_collapsed_selection_returns_the_best_collapsed_score_of_the_same_chains
     assert joint.info["log_prob"] >= coll.info["log_prob"]
     with pytest.raises(InvalidArgumentError, match="selection"):
         segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="best")
+
+
+def test_modal_selection_returns_a_sample_with_the_posterior_modal_step_counts(monkeypatch):
+    """selection="modal": per sequence, the number of runs most frequent over every kept sweep of every chain
+    (counted here by a naive loop over the recorded state sequences), and among the samples with those counts
+    the highest joint log probability; the chains are the same as with the joint choice."""
+    syn = synthetic(*MUTATION_CASE)
+    record: list[list[list[int]]] = []
+    original = sampler_module._Run._joint_log_prob
+
+    def recording(self):
+        out = original(self)
+        counts = []
+        for c in range(self.C):
+            row = []
+            for i in range(self.N):
+                states = self.s[c, i, : int(self.lengths[i])].tolist()
+                row.append(1 + sum(a != b for a, b in zip(states, states[1:])))
+            counts.append(row)
+        record.append(counts)
+        return out
+
+    monkeypatch.setattr(sampler_module._Run, "_joint_log_prob", recording)
+    modal = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="modal")
+    kept = record[len(record) // 2 :]  # burn_in 0.5 of 40 sweeps
+    assert len(record) == 40
+    expected = []
+    for i in range(syn.demos.n_demos):
+        tally = collections.Counter(row[i] for sweep in kept for row in sweep)
+        top = max(tally.values())
+        expected.append(min(n for n, k in tally.items() if k == top))
+    got = [len(runs) for runs in modal.info["coarse_runs"]]
+    assert got == expected
+    record.clear()
+    joint = segment(syn.demos, generator=torch.Generator().manual_seed(0))
+    assert joint.info["log_prob"] >= modal.info["log_prob"]
+    assert math.isfinite(modal.info["collapsed_log_prob"])
