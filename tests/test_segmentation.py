@@ -251,11 +251,16 @@ def test_demonstrations_on_different_paths_form_two_routes():
         assert seg.step_sequence(i) == list(seg.routes[int(seg.route_of[i])])
 
 
-@pytest.mark.xfail(strict=True, reason="a demonstration that skips a step gets a route of its own for some seeds")
+@pytest.mark.xfail(strict=True, reason="the skipping demonstration gets a route of its own on 3 of 4 seeds: its "
+                   "last leg gets a state of its own and the state it shares covers less than half of it")
 def test_demonstration_that_skips_a_step_joins_the_route():
-    """Property: three demonstrations along legs A (east), B (a short jog north) and C (east-north-east) and one that
-    goes from A's end straight to the goal (skipping B; its last leg within 10 degrees of C) form one route; the
-    skipping demonstration visits the route's first and last steps only. Checked for 4 seeds."""
+    """Property: three demonstrations along legs A (east), B (a short jog north) and C (11 degrees north of east) and
+    one that goes from A's end straight to the goal (skipping B; its last leg runs at 31 degrees, 20 from C) form
+    one route; the skipping demonstration visits the route's first and last steps only. Checked for 4 seeds.
+    Measured (seeds 0-3): the full demonstrations' states are A, B, A (C is within the 0.2 rad tolerance of A's
+    field), the skipping one's A, X with X its own; A covers 46 % of its path, short of the half that
+    ``_routes`` asks of the shared states, so on seeds 0, 2, 3 it forms a route of its own (on seed 1 it joins the
+    route with its last leg as a step of its own)."""
     W = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 0.4], [2.0, 0.6]], dtype=F64)
     failures = []
     for seed in range(4):
