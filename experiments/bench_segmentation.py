@@ -405,8 +405,9 @@ def main() -> None:
         _print(summary["per_family"])
         _print(summary["totals"])
     if args.json:
-        from lfd_torch.store import atomic_write
+        from lfd_torch.store import atomic_write, git_sha
 
+        result["provenance"] = {"git_sha": git_sha(), "methods": list(args.method), "segment_options": options}
         atomic_write(args.json, lambda p: p.write_text(json.dumps(result, indent=2)))
 
 

@@ -70,8 +70,10 @@ def main(argv: list[str] | None = None) -> None:
             "distinct_route_groupings": len(groupings), "runs": runs,
         }
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(out, fh, indent=1)
+        from lfd_torch.store import atomic_write, git_sha
+
+        out["settings"]["git_sha"] = git_sha()
+        atomic_write(args.json, lambda p: p.write_text(json.dumps(out, indent=1)))
 
 
 if __name__ == "__main__":
