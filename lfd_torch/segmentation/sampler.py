@@ -48,8 +48,11 @@ Which sample (``selection``), among the sweeps of every chain after burn-in:
         the prior was calibrated with it.
 Recalibrating the prior for "collapsed" or "modal" is open. Settings measured on the 280 synthetic cases with
 no gain over the default joint choice: ``extra_dof=2, direction_noise=0.1`` with "collapsed" (exact 89 %, every
-switch 78 %; on LASA it cuts Multi_Models_3 into 8-10 steps, the count most common on 4-7 of 10 seeds), and a
-slope prior three times looser than the offset's (90 %, 79 %).
+switch 78 %; ``experiments/bench_segmentation.py --parts synthetic --seeds 10 --method segment_collapsed
+--segment-option extra_dof=2 direction_noise=0.1``; on LASA, ``bench_segmentation_seeds.py`` with the same options,
+it cuts Multi_Models_3 into 8-10 steps, the count most common on 4-7 of 10 seeds), and a slope prior three times
+looser than the offset's (90 %, 79 %; a one-off study with a patched :func:`~.field.field_prior`, no option of
+the package sets it).
 
 Subsampling (done by :func:`lfd_torch.segmentation.segment`, ``max_samples``) bounds T: the forward recursion is
 sequential in T, so the cost of a sweep is about (number of feature blocks + 2) x T small batched operations.

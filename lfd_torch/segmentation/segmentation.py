@@ -73,7 +73,8 @@ deliberately gives a rest no grid point. A rest-aware transition model would hav
 switch made at speed to keep the two within-stage turns; by the same computation (merging two true steps) the
 true corners of ``straight_const_3d`` (seeds 0-5, 1 demonstration) carry 18-87 nats, those of 30-50 degrees
 18-25, so such a charge would remove most true corners met at speed. It is not used.
-The synthetic ``scoop_*`` families show the same limit at the approach-hook corner: the hook starts 30-65 degrees
+The synthetic ``scoop_*`` families show the same limit at the approach-hook corner (figures from a one-off analysis
+that scores both labellings with the sampler's collapsed score; no project command reproduces them): the hook starts 30-65 degrees
 below the approach and turns back up through the approach's direction, so its first third runs within about 30
 degrees of the approach; the model puts the first switch there, 25-60 samples after the corner, and its collapsed
 score prefers that to the true split by 2-7 nats even with 0.1 % position noise (seeds 0-4, constant and dwelling
