@@ -65,7 +65,7 @@ from lfd_torch.segmentation import segment
 from lfd_torch.segmentation.synthetic import FAMILIES, SyntheticSteps
 
 LASA_SHAPES = ("Multi_Models_1", "Multi_Models_2", "Multi_Models_3", "Multi_Models_4", "Angle", "Sshape")
-METHODS = ("segment", "segment_collapsed", "segment_modal", "ruptures", "ruptures_l2", "hmmlearn")
+METHODS = ("segment", "segment_collapsed", "segment_modal", "segment_map", "ruptures", "ruptures_l2", "hmmlearn")
 TOLERANCE = 0.03  # a switch is found when a detected one lies within 3 % of the demonstration's length
 SAVGOL_WINDOW = 25  # samples (0.25 s at dt = 0.01 s)
 PENALTY_C = 1.0  # PELT penalty = PENALTY_C * log(T) * n_features
@@ -167,8 +167,9 @@ def _sequences(syn: SyntheticSteps) -> list[np.ndarray]:
 
 def detect_segment(syn: SyntheticSteps, seed: int, selection: str = "joint",
                    **options: Any) -> tuple[list[list[int]], dict[str, Any]]:  # fmt: skip
-    """``lfd_torch.segmentation.segment`` with its default settings (``segment_collapsed`` / ``segment_modal``: the
-    returned sample chosen with ``selection="collapsed"`` / ``"modal"``), or others given by ``--segment-option``."""
+    """``lfd_torch.segmentation.segment`` with its default settings (``segment_collapsed`` / ``segment_modal`` /
+    ``segment_map``: the returned sample chosen with ``selection="collapsed"`` / ``"modal"`` / ``"map"``), or others
+    given by ``--segment-option``."""
     from lfd_torch.segmentation import SegmentationWarning
 
     with warnings.catch_warnings():
@@ -237,6 +238,7 @@ DETECTORS: dict[str, Callable[[SyntheticSteps, int], tuple[list[list[int]], dict
     "segment": detect_segment,
     "segment_collapsed": lambda syn, seed: detect_segment(syn, seed, "collapsed"),
     "segment_modal": lambda syn, seed: detect_segment(syn, seed, "modal"),
+    "segment_map": lambda syn, seed: detect_segment(syn, seed, "map"),
     "ruptures": _pelt("rbf"),
     "ruptures_l2": _pelt("l2"),
     "hmmlearn": detect_hmmlearn,
@@ -378,6 +380,7 @@ def main() -> None:
         DETECTORS["segment"] = functools.partial(detect_segment, **options)
         DETECTORS["segment_collapsed"] = functools.partial(detect_segment, selection="collapsed", **options)
         DETECTORS["segment_modal"] = functools.partial(detect_segment, selection="modal", **options)
+        DETECTORS["segment_map"] = functools.partial(detect_segment, selection="map", **options)
     torch.set_num_threads(1)
     result: dict[str, Any] = {}
     if "lasa" in args.parts:

@@ -13,7 +13,7 @@ import torch
 from scipy import stats
 
 from lfd_torch.segmentation.features import ibp_log_prior, sample_ibp, shared_log_odds
-from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood
+from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood, viterbi
 from lfd_torch.segmentation.transitions import (
     sample_transition_weights_posterior,
     transition_counts,
@@ -292,3 +292,32 @@ def test_dirichlet_multinomial_transitions_against_scipy(generator):
         coef = math.lgamma(n.sum() + 1) - sum(math.lgamma(v + 1) for v in n)
         ref += stats.dirichlet_multinomial.logpmf(n, a, int(n.sum())) - coef
     assert out == pytest.approx(ref, abs=1e-9)
+
+
+def test_viterbi_matches_brute_force_enumeration_with_padding():
+    """viterbi against the argmax of log p(s, x) over all K^T sequences (T = 6, K = 3, some transitions 0);
+    padding repeats the last valid state."""
+    import itertools
+
+    gen = torch.Generator().manual_seed(11)
+    B, T, K = 3, 6, 3
+    le = torch.randn(B, T, K, generator=gen, dtype=torch.float64) * 2.0
+    init = torch.rand(B, K, generator=gen, dtype=torch.float64) + 0.1
+    init = init / init.sum(-1, keepdim=True)
+    P = torch.rand(B, K, K, generator=gen, dtype=torch.float64) + 0.05
+    P[0, 0, 2] = 0.0  # a forbidden move
+    P = P / P.sum(-1, keepdim=True)
+    lengths = torch.tensor([6, 4, 1])
+    got = viterbi(le, init, P, lengths)
+    for b in range(B):
+        n = int(lengths[b])
+        best, arg = -math.inf, None
+        for seq in itertools.product(range(K), repeat=n):
+            lp = math.log(init[b, seq[0]]) + float(le[b, 0, seq[0]])
+            for t in range(1, n):
+                a = float(P[b, seq[t - 1], seq[t]])
+                lp += (math.log(a) if a > 0 else -math.inf) + float(le[b, t, seq[t]])
+            if lp > best:
+                best, arg = lp, seq
+        assert got[b, :n].tolist() == list(arg)
+        assert got[b, n:].tolist() == [arg[-1]] * (T - n)

@@ -200,11 +200,13 @@ def field_statistics(obs_z: Tensor, obs_u: Tensor, obs_w: Tensor, weights: Tenso
         counts (..., K), Szz (..., K, p, p), Suz (..., K, d, p), Suu (..., K, d, d).
     """
     counts = weights.sum(-2)
-    ww = weights * obs_w.unsqueeze(-1)
-    szz = torch.einsum("...nk,...ni,...nj->...kij", ww, obs_z, obs_z)
-    suz = torch.einsum("...nk,...ni,...nj->...kij", ww, obs_u, obs_z)
-    suu = torch.einsum("...nk,...ni,...nj->...kij", ww, obs_u, obs_u)
-    return counts, szz, suz, suu
+    wt = (weights * obs_w.unsqueeze(-1)).transpose(-1, -2)  # (..., K, n)
+
+    def moment(a: Tensor, b: Tensor) -> Tensor:  # sum_t wt_kt a_t b_t^T as one matmul over the flattened outer products
+        outer = (a.unsqueeze(-1) * b.unsqueeze(-2)).flatten(-2)  # (..., n, i j)
+        return (wt @ outer).unflatten(-1, (a.shape[-1], b.shape[-1]))
+
+    return counts, moment(obs_z, obs_z), moment(obs_u, obs_z), moment(obs_u, obs_u)
 
 
 def field_posterior(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor) -> FieldPrior:

@@ -46,6 +46,22 @@ Which sample (``selection``), among the sweeps of every chain after burn-in:
         switch 70 %, found / true 0.95 with 4 chains (84 %, 74 %, 0.96 with 8). The joint choice counts more steps than the posterior's mode
         because a sampled field's density rewards every extra state with its concentration (no Occam factor);
         the prior was calibrated with it.
+    "map": a local mode of the collapsed posterior p(s, F | u, z): from every chain's best collapsed sample, a
+        coordinate ascent of the collapsed score (merge two states; reassign one state's runs in one sequence to
+        another or a new state; Viterbi relabelling under the posterior-mean parameters; :meth:`_Run._merge_to_mode`),
+        then the best of the chains' results, returned with the posterior-mean fields of its labelling. The merge is
+        the move of split-merge samplers for the BP-HMM (Hughes, Fox & Sudderth 2012): it leaves a mode in which one
+        step is carried by two states, which the one-feature-at-a-time moves cannot join. Taken greedily, as a mode
+        search, chains that reached one basin end at one labelling. Measured (``experiments/bench_segmentation_seeds.py
+        --selection map``): every demonstration of Multi_Models_1 and _2, and demonstrations 0-3 of _3, get one
+        step count on 10 of 10 seeds (joint: 5-10), the rest 4-10 of 10, because chains still end in different
+        basins (Multi_Models_4: collapsed scores 460-476 across seeds; 8 chains, or polishing the 12 best kept
+        samples, do not close it). It under-segments the synthetic families more than the collapsed choice
+        (``bench_segmentation.py --parts synthetic --method segment_map``: exact step count 71 %, every switch 65 %,
+        found / true 0.91; 1 demonstration 62 %): under this prior the collapsed evidence of one affine field across
+        a 27-46 degree corner of a single noisy demonstration beats two fields by 6-20 nats (straight_const_2d,
+        study figures). A tighter free tolerance (``extra_dof=2 direction_noise=0.1``) restores the synthetic
+        families with "map" (90 %, 79 %) but makes LASA unstable again (Multi_Models_3: 4-8 of 10).
 Recalibrating the prior for "collapsed" or "modal" is open. Settings measured on the 280 synthetic cases with
 no gain over the default joint choice: ``extra_dof=2, direction_noise=0.1`` with "collapsed" (exact 89 %, every
 switch 78 %; ``experiments/bench_segmentation.py --parts synthetic --seeds 10 --method segment_collapsed
@@ -81,7 +97,7 @@ from lfd_torch.segmentation.field import (
     sample_field,
 )
 from lfd_torch.segmentation.features import ibp_log_prior, shared_log_odds, unique_feature_rate
-from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood
+from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood, viterbi
 from lfd_torch.segmentation.transitions import (
     dirichlet_log_density_rows,
     dirichlet_multinomial_log_prob,
@@ -168,7 +184,7 @@ HYPERPARAMETER_RANGES: dict[str, tuple[type, float, float, bool, bool]] = {
 
 
 #: How the returned sample is chosen among the chains' sweeps after burn-in (module docstring, "Which sample").
-SELECTIONS = ("joint", "collapsed", "modal")
+SELECTIONS = ("joint", "collapsed", "modal", "map")
 
 
 def check_hyperparameters(**values: object) -> None:
@@ -220,7 +236,8 @@ class BetaProcessHMMSampler:
         resample_hyperparameters: also sample gamma, alpha and kappa.
         selection: "joint" (default) returns the sample with the highest joint log probability, "collapsed" the one
             with the highest collapsed score, "modal" the best joint sample with the posterior-modal number of runs
-            per sequence (module docstring, "Which sample").
+            per sequence, "map" a local mode of the collapsed posterior reached from the chains' best samples
+            (module docstring, "Which sample").
         progress: show a tqdm progress bar.
     """
 
@@ -296,6 +313,23 @@ class BetaProcessHMMSampler:
             raise ShapeMismatchError("velocities must have the shapes of the sequences")
         run = _Run(self, x, v, lengths, generator, prior, min_duration, (velocity_noise, speed_floor))
         return run.sample()
+
+
+def _compact_columns(s: Tensor, F: Tensor) -> tuple[Tensor, Tensor]:
+    """Drop the feature columns nobody owns from F (N, K) and relabel s (N, T) to the remaining ones."""
+    cols = F.any(0)
+    remap = torch.cumsum(cols.long(), 0) - 1
+    return remap[s], F[:, cols]
+
+
+def duration_phases(s: Tensor, min_duration: int) -> Tensor:
+    """(..., T) long: samples since the current run of the labels s (..., T) began, capped at D - 1 (the phase of the
+    explicit-duration states, :func:`~lfd_torch.segmentation.transitions.expand_min_duration`)."""
+    t = torch.arange(s.shape[-1], device=s.device).expand_as(s)
+    start = torch.ones_like(s, dtype=torch.bool)
+    start[..., 1:] = s[..., 1:] != s[..., :-1]
+    first = torch.where(start, t, torch.zeros_like(t)).cummax(-1).values
+    return (t - first).clamp_max(int(min_duration) - 1)
 
 
 def _pad(sequences: list[Tensor]) -> tuple[Tensor, Tensor]:
@@ -787,7 +821,7 @@ class _Run:
                     kept.append({**self._snapshot(c), "joint": float(joint[c]), "runs": n_runs[c],
                                  "phase": self.phase[c].clone(), "chain": c})
             elif it >= start_keep:
-                collapsed = self._collapsed_log_prob() if cfg.selection == "collapsed" else None
+                collapsed = self._collapsed_log_prob() if cfg.selection in ("collapsed", "map") else None
                 lp = joint if collapsed is None else collapsed
                 better = lp > best_lp
                 if collapsed is None and bool(better.any()):  # reported with the sample: only for a new best
@@ -798,6 +832,11 @@ class _Run:
         if cfg.selection == "modal":
             snap = self._modal_sample(kept)
             c_best = snap["chain"]
+        elif cfg.selection == "map":
+            starts = [b for b in best if b is not None]
+            polished = [self._merge_to_mode(b) for b in starts]
+            c_best = max(range(len(polished)), key=lambda c: polished[c]["collapsed"])
+            snap = polished[c_best]
         else:
             c_best = int(torch.argmax(best_lp))
             snap = best[c_best]
@@ -819,6 +858,123 @@ class _Run:
             hyperparameters=snap["hyper"],
             acceptance=acceptance,
         )
+
+    def _merge_to_mode(self, snap: dict) -> dict:
+        """``selection="map"``: coordinate ascent of the collapsed score from a sample (module docstring).
+
+        Three moves, each kept only when the collapsed score :meth:`_collapsed_score` rises, repeated until none
+        does (a local mode of p(s, F | u, z)):
+            merge: all K (K - 1) / 2 merges of a pair of states (the runs of k relabelled j, f_j <- f_j or f_k, slot
+                k dropped) scored in one batched call, the best one taken;
+            relabel: the Viterbi state sequences of every sequence under the posterior means of the fields, noise
+                and transition weights given the current labelling (features it owns but no longer uses dropped);
+            reassign: in one sequence, the runs of one state given to another state or to a new one (the best of all
+                such moves, scored in one batched call): the partial merges and splits of state sharing.
+        The fields returned with it are those posterior means; the joint log probability of a polished sample is
+        not defined (no sampled parameters): nan.
+        """
+        s, F = snap["states"], snap["features"]
+        hyper = [torch.tensor([snap["hyper"][k]], dtype=self.dtype, device=self.device)
+                 for k in ("transition_concentration", "stickiness", "feature_mass")]
+
+        def score_of(s_b: Tensor, f_b: Tensor) -> Tensor:
+            return self._collapsed_score(s_b, f_b, duration_phases(s_b, self.D), *(h.expand(s_b.shape[0]) for h in hyper))
+
+        score = score_of(s[None], F[None])[0]
+        while True:
+            moved = False
+            s2, F2 = self._viterbi_relabel(s, F, float(hyper[0]), float(hyper[1]))
+            if not (torch.equal(s2, s) and torch.equal(F2, F)):
+                sc = score_of(s2[None], F2[None])[0]
+                if bool(sc > score):
+                    s, F, score, moved = s2, F2, sc, True
+            K = F.shape[-1]
+            if K >= 2:
+                pairs = torch.combinations(torch.arange(K, device=self.device), 2)  # (P, 2), j < k
+                j, k = pairs[:, 0].view(-1, 1, 1), pairs[:, 1].view(-1, 1, 1)
+                P = pairs.shape[0]
+                merged = torch.where(s == k, j, s)
+                cand_s = merged - (merged > k).long()
+                f = F.unsqueeze(0).expand(P, -1, -1).clone()
+                f[torch.arange(P, device=self.device), :, pairs[:, 0]] |= F[:, pairs[:, 1]].T
+                keep = torch.arange(K - 1, device=self.device).unsqueeze(0)
+                keep = keep + (keep >= pairs[:, 1:]).long()  # (P, K - 1): every slot but k
+                cand_f = torch.gather(f, 2, keep.unsqueeze(1).expand(P, F.shape[0], K - 1))
+                sc = score_of(cand_s, cand_f)
+                b = int(torch.argmax(sc))
+                if bool(sc[b] > score):
+                    s, F, score, moved = cand_s[b], cand_f[b], sc[b], True
+            cand = self._reassignments(s, F)
+            if cand is not None:
+                sc = score_of(*cand)
+                b = int(torch.argmax(sc))
+                if bool(sc[b] > score):
+                    s, F = _compact_columns(cand[0][b], cand[1][b])
+                    score, moved = sc[b], True
+            if not moved:
+                break
+        field, noise = self._posterior_mean_fields(s, F.shape[-1])
+        return {**snap, "states": s, "features": F, "field": field, "noise": noise, "joint": math.nan,
+                "collapsed": float(score)}
+
+    def _reassignments(self, s: Tensor, F: Tensor) -> tuple[Tensor, Tensor] | None:
+        """The reassign move of :meth:`_merge_to_mode`: every (sequence i, state k it uses, state j != k or a new
+        one) with the runs of k in sequence i relabelled j; (P, N, T) labels and (P, N, K + 1) features (the last
+        column is the new state's)."""
+        N, K = F.shape
+        used = (torch.nn.functional.one_hot(s, K).to(torch.bool) & self.valid.unsqueeze(-1)).any(1)  # (N, K)
+        i, k, j = torch.nonzero(used.unsqueeze(-1).expand(N, K, K + 1), as_tuple=True)
+        keep = j != k
+        i, k, j = i[keep], k[keep], j[keep]
+        if i.numel() == 0:
+            return None
+        P = i.numel()
+        cand_s = s.unsqueeze(0).expand(P, -1, -1).clone()
+        p = torch.arange(P, device=self.device)
+        rows = cand_s[p, i]  # (P, T)
+        cand_s[p, i] = torch.where(rows == k.unsqueeze(-1), j.unsqueeze(-1), rows)
+        cand_f = torch.cat([F, torch.zeros(N, 1, dtype=F.dtype, device=F.device)], 1).unsqueeze(0).repeat(P, 1, 1)
+        cand_f[p, i, k] = False
+        cand_f[p, i, j] = True
+        return cand_s, cand_f
+
+    def _viterbi_relabel(self, s: Tensor, F: Tensor, alpha: float, kappa: float) -> tuple[Tensor, Tensor]:
+        """The relabel move of :meth:`_merge_to_mode`: (N, T) Viterbi labels and (N, K) features, unused slots of
+        every sequence dropped and empty columns removed."""
+        K, D = F.shape[-1], self.D
+        field, noise = self._posterior_mean_fields(s, K)
+        o = self.obs
+        le = field_log_likelihood(o.z, o.u, o.w, field.unsqueeze(0), noise.unsqueeze(0), self.cfg.robust_dof)
+        counts = transition_counts(s, self.lengths, K, free_transitions(duration_phases(s, D), D)).to(self.dtype)
+        f = F.to(self.dtype)
+        owned = f.unsqueeze(-1) * f.unsqueeze(-2)  # (N, K, K)
+        prior = alpha + kappa * torch.eye(K, dtype=self.dtype, device=self.device)
+        pi = (prior + counts) * owned  # posterior mean of the sticky Dirichlet rows, up to normalisation
+        pi = pi / pi.sum(-1, keepdim=True).clamp_min(torch.finfo(self.dtype).tiny)
+        le = le.masked_fill(~F.unsqueeze(1), _NEG_INF).repeat_interleave(D, -1)
+        le = self._complete_last_run(le, self.lengths)
+        init, P = expand_min_duration(initial_distribution(F, self.dtype), pi, D)
+        s_new = viterbi(le, init, P, self.lengths) // D
+        used = torch.nn.functional.one_hot(s_new, K).to(torch.bool)
+        used = (used & self.valid.unsqueeze(-1)).any(1)  # (N, K)
+        return _compact_columns(s_new, used)
+
+    def _posterior_mean_fields(self, s: Tensor, K: int) -> tuple[Tensor, Tensor]:
+        """(K, d, p) posterior-mean fields and (K, d, d) noise of a labelling s (N, T), as in :meth:`_collapsed_score`."""
+        N, T, d = self.N, self.T, self.d
+        o = self.obs
+        onehot = (torch.nn.functional.one_hot(s, K).to(self.dtype) * self.valid.to(self.dtype).unsqueeze(-1))
+        onehot = onehot.reshape(1, N * T, K)
+        z, u, w = o.z.reshape(1, N * T, -1), o.u.reshape(1, N * T, -1), o.w.reshape(1, N * T)
+        post = field_posterior(self.prior, *field_statistics(z, u, w, onehot))
+        if self.cfg.robust_dof is not None:
+            nu = self.cfg.robust_dof
+            psi = post.scale / (post.dof - d - 1.0).clamp_min(1.0)[..., None, None]
+            _, q = field_log_likelihood(z, u, w, post.mean, psi, nu, maha_out=True)
+            lam = max(nu + d - 2.0, 1e-3) / (nu + (q * onehot).sum(-1))
+            post = field_posterior(self.prior, *field_statistics(z, u, w * lam, onehot))
+        psi = post.scale / (post.dof - d - 1.0).clamp_min(1.0)[..., None, None]
+        return post.mean[0], psi[0]
 
     def _runs_per_sequence(self) -> Tensor:
         """(C, N) long: runs of one state in every sequence (its number of pieces) in the current sample."""

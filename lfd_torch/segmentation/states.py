@@ -1,4 +1,4 @@
-"""Hidden state sequences: forward algorithm and forward filtering / backward sampling (FFBS).
+"""Hidden state sequences: forward algorithm, forward filtering / backward sampling (FFBS) and Viterbi decoding.
 
 Notation:
     B  sequences in a batch (chains x demonstrations, padded)
@@ -22,7 +22,7 @@ from torch import Tensor
 
 from lfd_torch.errors import ShapeMismatchError
 
-__all__ = ["forward_log_likelihood", "forward_filter", "backward_sample"]
+__all__ = ["forward_log_likelihood", "forward_filter", "backward_sample", "viterbi"]
 
 
 
@@ -152,4 +152,37 @@ def backward_sample(filtered: Tensor, transition: Tensor, lengths: Tensor, gener
         cur = torch.where(terminal[:, t], s_end, cur)
         out[:, t] = cur
         nxt = cur
+    return out
+
+
+def viterbi(log_emission: Tensor, initial: Tensor, transition: Tensor, lengths: Tensor) -> Tensor:
+    """The most probable state sequence argmax_s p(s | x) of every sequence (max-product recursion in log space).
+
+    Args:
+        log_emission: (B, T, K).
+        initial: (B, K).
+        transition: (B, K, K).
+        lengths: (B,) long, >= 1.
+
+    Returns:
+        (B, T) long; padding repeats the last valid state. Ties go to the lower state index.
+    """
+    _check(log_emission, initial, transition, lengths)
+    B, T, K = log_emission.shape
+    log_a = torch.log(transition)
+    delta = torch.log(initial) + log_emission[:, 0]
+    stay = torch.arange(K, device=log_emission.device).expand(B, K)
+    back = torch.empty(B, T, K, dtype=torch.long, device=log_emission.device)
+    back[:, 0] = stay
+    for t in range(1, T):
+        best, arg = (delta.unsqueeze(-1) + log_a).max(1)  # over the previous state j of j -> k
+        active = (t < lengths).unsqueeze(-1)
+        delta = torch.where(active, best + log_emission[:, t], delta)
+        back[:, t] = torch.where(active, arg, stay)
+    out = torch.empty(B, T, dtype=torch.long, device=log_emission.device)
+    cur = delta.argmax(-1)
+    out[:, T - 1] = cur
+    for t in range(T - 1, 0, -1):
+        cur = back[:, t].gather(1, cur.unsqueeze(1)).squeeze(1)
+        out[:, t - 1] = cur
     return out
