@@ -55,8 +55,10 @@ Which sample (``selection``), among the sweeps of every chain after burn-in:
         search, chains that reached one basin end at one labelling. Measured (``experiments/bench_segmentation_seeds.py
         --selection map``): every demonstration of Multi_Models_1 and _2, and demonstrations 0-3 of _3, get one
         step count on 10 of 10 seeds (joint: 5-10), the rest 4-10 of 10, because chains still end in different
-        basins (Multi_Models_4: collapsed scores 460-476 across seeds; 8 chains, or polishing the 12 best kept
-        samples, do not close it). It under-segments the synthetic families more than the collapsed choice
+        basins (Multi_Models_4: collapsed scores 460-476 across seeds). Not closed by 8 chains (``--segment-option
+        n_chains=8``: Multi_Models_1 and _2 unchanged, Multi_Models_3 demonstrations 2-6 on 3-9 of 10,
+        Multi_Models_4 demonstrations 0-2 on 5 of 10), nor, in one-off studies, by polishing the 12 best kept samples or by moving every chain
+        to its polished mode at the end of burn-in (the chains keep the basins they found). It under-segments the synthetic families more than the collapsed choice
         (``bench_segmentation.py --parts synthetic --method segment_map``: exact step count 71 %, every switch 65 %,
         found / true 0.91; 1 demonstration 62 %): under this prior the collapsed evidence of one affine field across
         a 27-46 degree corner of a single noisy demonstration beats two fields by 6-20 nats (straight_const_2d,
