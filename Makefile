@@ -44,6 +44,7 @@ figures: $(STAMP)
 # read from $$LFD_MNIST_DIR (default: the development copy beside the checkout; the package never assumes a path).
 results: $(STAMP)
 	$(BIN)/python experiments/segment_lasa.py +experiment=segment_lasa_publish
+	$(BIN)/python experiments/segment_lasa.py +experiment=segment_lasa_map_publish
 	$(BIN)/python experiments/lasa_tasks.py +experiment=lasa_tasks_publish
 	$(BIN)/python experiments/lasa_benchmark.py +experiment=lasa_benchmark_publish
 	rm -rf multirun/lasa_benchmark_paper

@@ -5,7 +5,8 @@ Reads only ``results/tables/*`` and ``results/libraries/*`` (the project's ``res
 plotting functions, on the stored segmentations, skill libraries and rollout paths, and the engine rollouts that
 the skill figures show are recomputed from the stored libraries with the same seeded starts and pushes.
 
-* ``segment_lasa``: ``segment_lasa_<set>.png`` (paper Figs 2, 6) from ``libraries/segment_lasa/<set>/``;
+* ``segment_lasa``: ``segment_lasa_<set>.png`` (paper Figs 2, 6) from ``libraries/segment_lasa/<set>/``, and
+  ``segment_lasa_map_<set>.png`` (``selection="map"``) from ``libraries/segment_lasa_map/<set>/`` where stored;
 * ``lasa_tasks``: per shape ``lasa_tasks_<shape>_{entropy,steps,modulation,pushes}.png`` and ``_tree.{txt,dot}``
   (Figs 3, 5-8) from ``libraries/lasa_tasks/`` and the summary ``tables/lasa_tasks.md``;
 * ``lasa_benchmark``: for every ``tables/lasa_benchmark*.parquet`` the Fig. 9 violins
@@ -64,18 +65,22 @@ def _markdown(frame: pd.DataFrame, path: Path, floatfmt: str) -> Path:
 
 
 def segment_lasa_figures(results: Path, report: Callable[[Path], None]) -> None:
-    """``segment_lasa_<set>.png`` for every data set of ``tables/segment_lasa.parquet``, and its markdown."""
+    """``segment_lasa_<set>.png`` for every data set of ``tables/segment_lasa.parquet``, and its markdown; the same
+    for ``tables/segment_lasa_map.parquet`` (the ``selection="map"`` run) where it exists."""
     import segment_lasa
 
-    table = _table(results, "segment_lasa")
-    for name in pd.unique(table["shape"]):
-        where = results / "libraries" / "segment_lasa" / str(name)
-        seg = Segmentation.load(where / "segmentation.pt")
-        demos, _ = load_demos(where / "demos.pt")
-        report(segment_lasa.draw(str(name), seg, demos, results / "figures" / f"segment_lasa_{name}.png"))
-    shown = table.drop(columns=["experiment", "method", "fold", *(c for c in PROVENANCE_COLUMNS if c != "seed")],
-                       errors="ignore")  # fmt: skip
-    report(_markdown(shown, results / "tables" / "segment_lasa.md", ".4g"))
+    for experiment in ("segment_lasa", "segment_lasa_map"):
+        if experiment != "segment_lasa" and not (results / "tables" / f"{experiment}.parquet").exists():
+            continue
+        table = _table(results, experiment)
+        for name in pd.unique(table["shape"]):
+            where = results / "libraries" / experiment / str(name)
+            seg = Segmentation.load(where / "segmentation.pt")
+            demos, _ = load_demos(where / "demos.pt")
+            report(segment_lasa.draw(str(name), seg, demos, results / "figures" / f"{experiment}_{name}.png"))
+        shown = table.drop(columns=["experiment", "method", "fold", *(c for c in PROVENANCE_COLUMNS if c != "seed")],
+                           errors="ignore")  # fmt: skip
+        report(_markdown(shown, results / "tables" / f"{experiment}.md", ".4g"))
 
 
 def lasa_tasks_figures(results: Path, report: Callable[[Path], None]) -> None:

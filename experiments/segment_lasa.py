@@ -11,9 +11,10 @@ Figures show each demonstration coloured by step over the regions where p(x | A_
     python experiments/segment_lasa.py seed=1 segmentation.n_iterations=80
     python experiments/segment_lasa.py -m seed=0,1,2
     python experiments/segment_lasa.py +experiment=segment_lasa_publish    # the README's table and figures
+    python experiments/segment_lasa.py +experiment=segment_lasa_map_publish    # the same with selection="map"
 
 ``publish=true`` writes into ``paths.tables`` / ``paths.figures`` and stores each data set's segmentation and
-demonstrations under ``paths.libraries``/segment_lasa/<name>/ (what ``experiments/figures.py`` redraws the figures
+demonstrations under ``paths.libraries``/<experiment>/<name>/ (what ``experiments/figures.py`` redraws the figures
 from); it is refused in a multirun (every job would overwrite the published files).
 """
 
@@ -68,9 +69,9 @@ def draw(name: str, segmentation: Any, demos: Demos, path: Path) -> Path:
     return path
 
 
-def store(name: str, segmentation: Any, demos: Demos, libraries: Path) -> list[Path]:
-    """Store what :func:`draw` needs under ``libraries/segment_lasa/<name>/``."""
-    where = libraries / "segment_lasa" / name
+def store(name: str, segmentation: Any, demos: Demos, libraries: Path, experiment: str = "segment_lasa") -> list[Path]:
+    """Store what :func:`draw` needs under ``libraries/<experiment>/<name>/``."""
+    where = libraries / experiment / name
     return [segmentation.save(where / "segmentation.pt"), save_demos(demos, where / "demos.pt", velocities=False)]
 
 
@@ -114,7 +115,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             path = fig_dir / f"{cfg.experiment}_{name}.png"
             written.append(draw(name, seg, demos, path))
         if cfg.publish:
-            written += store(name, seg, demos, Path(cfg.paths.libraries))
+            written += store(name, seg, demos, Path(cfg.paths.libraries), cfg.experiment)
     table = pd.DataFrame(rows)
     written.append(write_table(table, out_dir / "results.parquet", manifest=manifest))
     if cfg.publish:
