@@ -750,6 +750,15 @@ class _Run:
         """(C,) collapsed score of every chain's current (s, F): :meth:`_collapsed_score`."""
         return self._collapsed_score(self.s, self.F, self.phase, self.alpha, self.kappa, self.mass)
 
+    def _profile_scales(self, z: Tensor, u: Tensor, w: Tensor, onehot: Tensor) -> Tensor:
+        """(B, n) Student-t scales lambda_t at their conditional mode given the posterior-mean field of the labelling
+        ``onehot`` (B, n, K): the mode of Gamma((nu + d) / 2, (nu + q_t) / 2), q_t the squared Mahalanobis residual."""
+        nu, d = self.cfg.robust_dof, self.d
+        post = field_posterior(self.prior, *field_statistics(z, u, w, onehot))
+        psi = post.scale / (post.dof - d - 1.0).clamp_min(1.0)[..., None, None]
+        _, q = field_log_likelihood(z, u, w, post.mean, psi, nu, maha_out=True)  # (B, n, K)
+        return max(nu + d - 2.0, 1e-3) / (nu + (q * onehot).sum(-1))
+
     def _collapsed_score(self, s: Tensor, F: Tensor, phase: Tensor, alpha: Tensor, kappa: Tensor,
                          mass: Tensor) -> Tensor:
         """(B,) log p(u, s, F | z) with the fields, their noise and the transition weights integrated out.
@@ -774,10 +783,7 @@ class _Run:
         lp = 0.5 * d * (torch.log(o.w.clamp_min(1e-300)) * valid).sum().expand(B)
         nu = self.cfg.robust_dof
         if nu is not None:
-            post = field_posterior(self.prior, *field_statistics(z, u, w, onehot))
-            psi = post.scale / (post.dof - d - 1.0).clamp_min(1.0)[..., None, None]
-            _, q = field_log_likelihood(z, u, w, post.mean, psi, nu, maha_out=True)  # (B, NT, K)
-            lam = max(nu + d - 2.0, 1e-3) / (nu + (q * onehot).sum(-1))  # mode of Gamma((nu + d) / 2, (nu + q) / 2)
+            lam = self._profile_scales(z, u, w, onehot)
             half = 0.5 * nu
             log_gamma = half * math.log(half) - math.lgamma(half) + (half - 1.0) * torch.log(lam) - half * lam
             flat_valid = valid.reshape(1, N * T)
@@ -968,13 +974,9 @@ class _Run:
         onehot = (torch.nn.functional.one_hot(s, K).to(self.dtype) * self.valid.to(self.dtype).unsqueeze(-1))
         onehot = onehot.reshape(1, N * T, K)
         z, u, w = o.z.reshape(1, N * T, -1), o.u.reshape(1, N * T, -1), o.w.reshape(1, N * T)
-        post = field_posterior(self.prior, *field_statistics(z, u, w, onehot))
         if self.cfg.robust_dof is not None:
-            nu = self.cfg.robust_dof
-            psi = post.scale / (post.dof - d - 1.0).clamp_min(1.0)[..., None, None]
-            _, q = field_log_likelihood(z, u, w, post.mean, psi, nu, maha_out=True)
-            lam = max(nu + d - 2.0, 1e-3) / (nu + (q * onehot).sum(-1))
-            post = field_posterior(self.prior, *field_statistics(z, u, w * lam, onehot))
+            w = w * self._profile_scales(z, u, w, onehot)
+        post = field_posterior(self.prior, *field_statistics(z, u, w, onehot))
         psi = post.scale / (post.dof - d - 1.0).clamp_min(1.0)[..., None, None]
         return post.mean[0], psi[0]
 
