@@ -47,19 +47,21 @@ Which sample (``selection``), among the sweeps of every chain after burn-in:
         because a sampled field's density rewards every extra state with its concentration (no Occam factor);
         the prior was calibrated with it.
     "map": a local mode of the collapsed posterior p(s, F | u, z): from every chain's best collapsed sample, a
-        coordinate ascent of the collapsed score (merge two states; reassign one state's runs in one sequence to
-        another or a new state; Viterbi relabelling under the posterior-mean parameters; :meth:`_Run._merge_to_mode`),
+        coordinate ascent of the collapsed score (merge two states, alone or followed by a relabelling; reassign one
+        state's runs in one sequence to another or a new state; Viterbi relabelling under the posterior-mean
+        parameters; :meth:`_Run._merge_to_mode`),
         then the best of the chains' results, returned with the posterior-mean fields of its labelling. The merge is
         the move of split-merge samplers for the BP-HMM (Hughes, Fox & Sudderth 2012): it leaves a mode in which one
         step is carried by two states, which the one-feature-at-a-time moves cannot join. Taken greedily, as a mode
         search, chains that reached one basin end at one labelling. Measured (``experiments/bench_segmentation_seeds.py
-        --selection map``): every demonstration of Multi_Models_1 and _2, and demonstrations 0-3 of _3, get one
-        step count on 10 of 10 seeds (joint: 5-10), the rest 4-10 of 10, because chains still end in different
-        basins (Multi_Models_4: collapsed scores 460-476 across seeds). Not closed by 8 chains (``--segment-option
-        n_chains=8``: Multi_Models_1 and _2 unchanged, Multi_Models_3 demonstrations 2-6 on 3-9 of 10,
-        Multi_Models_4 demonstrations 0-2 on 5 of 10), nor, in one-off studies, by polishing the 12 best kept samples or by moving every chain
-        to its polished mode at the end of burn-in (the chains keep the basins they found). It under-segments the synthetic families more than the collapsed choice
-        (``bench_segmentation.py --parts synthetic --method segment_map``: exact step count 71 %, every switch 65 %,
+        --selection map``): every demonstration of Multi_Models_1 and _2 gets one step count on 10 of 10 seeds
+        (joint: 5-10), those of _3 on 8-10 (both routes' counts on 10 and 9), those of _4 on 5-10, because its
+        chains still end in different basins (collapsed scores 460-476 across seeds). Not closed, before the
+        merge look-ahead was added, by 8 chains (``--segment-option n_chains=8``) nor, in one-off studies, by
+        polishing the 12 best kept samples or by moving every chain to its polished mode at the end of burn-in
+        (the chains keep the basins they found); the look-ahead brought Multi_Models_3 demonstrations 4-6 from 5-6
+        to 9-10 of 10. It under-segments the synthetic families more than the collapsed choice
+        (``bench_segmentation.py --parts synthetic --method segment_map``: exact step count 70 %, every switch 65 %,
         found / true 0.91; 1 demonstration 62 %): under this prior the collapsed evidence of one affine field across
         a 27-46 degree corner of a single noisy demonstration beats two fields by 6-20 nats (straight_const_2d,
         study figures). A tighter free tolerance (``extra_dof=2 direction_noise=0.1``) restores the synthetic
@@ -115,6 +117,7 @@ from lfd_torch.segmentation.transitions import (
 __all__ = ["SamplerResult", "BetaProcessHMMSampler", "HYPERPARAMETER_RANGES", "check_hyperparameters"]
 
 _NEG_INF = float("-inf")
+_LOOKAHEAD = 4  # map search: merges tried with a relabelling after them when no merge alone raises the score
 _BLOCK = 2  # features whose flips share one batched forward pass (2^2 - 1 = 3 variants per sequence)
 
 
@@ -873,7 +876,8 @@ class _Run:
         Three moves, each kept only when the collapsed score :meth:`_collapsed_score` rises, repeated until none
         does (a local mode of p(s, F | u, z)):
             merge: all K (K - 1) / 2 merges of a pair of states (the runs of k relabelled j, f_j <- f_j or f_k, slot
-                k dropped) scored in one batched call, the best one taken;
+                k dropped) scored in one batched call, the best one taken; when none raises the score, the
+                ``_LOOKAHEAD`` best are tried once more with a relabelling after them (two moves as one);
             relabel: the Viterbi state sequences of every sequence under the posterior means of the fields, noise
                 and transition weights given the current labelling (features it owns but no longer uses dropped);
             reassign: in one sequence, the runs of one state given to another state or to a new one (the best of all
@@ -912,6 +916,13 @@ class _Run:
                 b = int(torch.argmax(sc))
                 if bool(sc[b] > score):
                     s, F, score, moved = cand_s[b], cand_f[b], sc[b], True
+                else:  # look one move further: the best merges, each followed by a relabelling
+                    for b in torch.argsort(sc, descending=True)[:_LOOKAHEAD].tolist():
+                        s2, F2 = self._viterbi_relabel(cand_s[b], cand_f[b], float(hyper[0]), float(hyper[1]))
+                        sc2 = score_of(s2[None], F2[None])[0]
+                        if bool(sc2 > score):
+                            s, F, score, moved = s2, F2, sc2, True
+                            break
             cand = self._reassignments(s, F)
             if cand is not None:
                 sc = score_of(*cand)
