@@ -49,18 +49,19 @@ Which sample (``selection``), among the sweeps of every chain after burn-in:
     "map": a local mode of the collapsed posterior p(s, F | u, z): from every chain's best collapsed sample, a
         coordinate ascent of the collapsed score (merge two states, alone or followed by a relabelling; reassign one
         state's runs in one sequence to another or a new state; Viterbi relabelling under the posterior-mean
-        parameters; :meth:`_Run._merge_to_mode`),
+        parameters; :meth:`_Run._climb_to_mode`),
         then the best of the chains' results, returned with the posterior-mean fields of its labelling. The merge is
         the move of split-merge samplers for the BP-HMM (Hughes, Fox & Sudderth 2012): it leaves a mode in which one
         step is carried by two states, which the one-feature-at-a-time moves cannot join. Taken greedily, as a mode
         search, chains that reached one basin end at one labelling. Measured (``experiments/bench_segmentation_seeds.py
         --selection map``): every demonstration of Multi_Models_1 and _2 gets one step count on 10 of 10 seeds
         (joint: 5-10), those of _3 on 8-10 (both routes' counts on 10 and 9), those of _4 on 5-10, because its
-        chains still end in different basins (collapsed scores 460-476 across seeds). Not closed, before the
-        merge look-ahead was added, by 8 chains (``--segment-option n_chains=8``) nor, in one-off studies, by
-        polishing the 12 best kept samples or by moving every chain to its polished mode at the end of burn-in
-        (the chains keep the basins they found); the look-ahead brought Multi_Models_3 demonstrations 4-6 from 5-6
-        to 9-10 of 10. It under-segments the synthetic families more than the collapsed choice
+        chains still end in different basins (collapsed scores 460-476 across seeds, a one-off study). Not
+        closed, before the merge look-ahead was added, by 8 chains (``--segment-option n_chains=8``) nor, in
+        one-off studies, by polishing the 12 best kept samples or by moving every chain to its polished mode at the
+        end of burn-in (the chains keep the basins they found); the look-ahead brought Multi_Models_3
+        demonstrations 4-6 from 5-6 to 9-10 of 10 (the run without it is not stored). It under-segments the
+        synthetic families more than the collapsed choice
         (``bench_segmentation.py --parts synthetic --method segment_map``: exact step count 70 %, every switch 65 %,
         found / true 0.91; 1 demonstration 62 %): under this prior the collapsed evidence of one affine field across
         a 27-46 degree corner of a single noisy demonstration beats two fields by 6-20 nats (straight_const_2d,
@@ -845,7 +846,7 @@ class _Run:
             c_best = snap["chain"]
         elif cfg.selection == "map":
             starts = [b for b in best if b is not None]
-            polished = [self._merge_to_mode(b) for b in starts]
+            polished = [self._climb_to_mode(b) for b in starts]
             c_best = max(range(len(polished)), key=lambda c: polished[c]["collapsed"])
             snap = polished[c_best]
         else:
@@ -870,7 +871,7 @@ class _Run:
             acceptance=acceptance,
         )
 
-    def _merge_to_mode(self, snap: dict) -> dict:
+    def _climb_to_mode(self, snap: dict) -> dict:
         """``selection="map"``: coordinate ascent of the collapsed score from a sample (module docstring).
 
         Three moves, each kept only when the collapsed score :meth:`_collapsed_score` rises, repeated until none
@@ -890,7 +891,8 @@ class _Run:
                  for k in ("transition_concentration", "stickiness", "feature_mass")]
 
         def score_of(s_b: Tensor, f_b: Tensor) -> Tensor:
-            return self._collapsed_score(s_b, f_b, duration_phases(s_b, self.D), *(h.expand(s_b.shape[0]) for h in hyper))
+            batch = [h.expand(s_b.shape[0]) for h in hyper]
+            return self._collapsed_score(s_b, f_b, duration_phases(s_b, self.D), *batch)
 
         score = score_of(s[None], F[None])[0]
         while True:
@@ -937,7 +939,7 @@ class _Run:
                 "collapsed": float(score)}
 
     def _reassignments(self, s: Tensor, F: Tensor) -> tuple[Tensor, Tensor] | None:
-        """The reassign move of :meth:`_merge_to_mode`: every (sequence i, state k it uses, state j != k or a new
+        """The reassign move of :meth:`_climb_to_mode`: every (sequence i, state k it uses, state j != k or a new
         one) with the runs of k in sequence i relabelled j; (P, N, T) labels and (P, N, K + 1) features (the last
         column is the new state's)."""
         N, K = F.shape
@@ -958,7 +960,7 @@ class _Run:
         return cand_s, cand_f
 
     def _viterbi_relabel(self, s: Tensor, F: Tensor, alpha: float, kappa: float) -> tuple[Tensor, Tensor]:
-        """The relabel move of :meth:`_merge_to_mode`: (N, T) Viterbi labels and (N, K) features, unused slots of
+        """The relabel move of :meth:`_climb_to_mode`: (N, T) Viterbi labels and (N, K) features, unused slots of
         every sequence dropped and empty columns removed."""
         K, D = F.shape[-1], self.D
         field, noise = self._posterior_mean_fields(s, K)
@@ -979,7 +981,8 @@ class _Run:
         return _compact_columns(s_new, used)
 
     def _posterior_mean_fields(self, s: Tensor, K: int) -> tuple[Tensor, Tensor]:
-        """(K, d, p) posterior-mean fields and (K, d, d) noise of a labelling s (N, T), as in :meth:`_collapsed_score`."""
+        """(K, d, p) posterior-mean fields and (K, d, d) noise of a labelling s (N, T), as in
+        :meth:`_collapsed_score`."""
         N, T, d = self.N, self.T, self.d
         o = self.obs
         onehot = (torch.nn.functional.one_hot(s, K).to(self.dtype) * self.valid.to(self.dtype).unsqueeze(-1))
