@@ -75,6 +75,29 @@ it cuts Multi_Models_3 into 8-10 steps, the count most common on 4-7 of 10 seeds
 looser than the offset's (90 %, 79 %; a one-off study with a patched :func:`~.field.field_prior`, no option of
 the package sets it).
 
+Position (``position_weight`` tau; NIW kernels of :mod:`lfd_torch.gmm`). An affine direction field is defined over
+the whole space, so with directions alone one state may carry two pieces far apart whose directions one field
+fits (on LASA Multi_Models_4 one state served the first legs of both routes, the routes were grouped as one and
+a step's attractor, the mean of end points on both routes, fell 26 % of the data span away from either path).
+The paper's emission is a Gaussian on the state because it "captures spatial information"; here it is the
+product of the direction field and a tempered Gaussian on the standardised position,
+
+    p(u_t, x_t | s_t = k) = t(u_t; B_k z_t, Psi_k / w_t) N(x~_t; mu_k, Sigma_k)^tau,   (mu_k, Sigma_k) ~ NIW,
+
+NIW prior from the standardised positions (:func:`~lfd_torch.gmm.niw_prior_from_data`, expected state covariance
+0.05 of the data's variance per axis). Why tempered: the positions of a path are not independent draws around a
+centre; along a run they are the integral of its directions, which the field already scores, so counting every
+grid point as an independent position observation would double count them, and a Gaussian would then gain about
+log 2 nats per sample by splitting a long leg in two (:mod:`.field`). The new spatial information is about one
+point per shortest step, so tau = 1 / D by default (``position_weight=None``, D the minimum duration in grid
+samples): a leg of n grid points counts as n / D position observations. Tempering keeps every update
+conjugate (the NIW statistics are weighted by tau; the collapsed score adds the tempered NIW evidence of each
+state's positions, the joint log probability the NIW density of (mu_k, Sigma_k)); births draw (mu*, Sigma*)
+from the tempered posterior of the same window as the field. ``position_weight=0`` is the direction-only model
+(nothing is drawn for the positions; the default, which the stored tables were made with).
+Measured with ``selection="map"`` and tau = 1 / D (``experiments/bench_segmentation_seeds.py --selection map
+--segment-option position_weight=None``): see the README's stability table.
+
 Subsampling (done by :func:`lfd_torch.segmentation.segment`, ``max_samples``) bounds T: the forward recursion is
 sequential in T, so the cost of a sweep is about (number of feature blocks + 2) x T small batched operations.
 """
@@ -89,7 +112,17 @@ import torch
 from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
-from lfd_torch.gmm import sample_gamma
+from lfd_torch.gmm import (
+    NIWPrior,
+    gaussian_log_density,
+    niw_log_density,
+    niw_log_marginal_likelihood,
+    niw_posterior,
+    niw_prior_from_data,
+    sample_gamma,
+    sample_niw,
+    sufficient_statistics,
+)
 from lfd_torch.segmentation.field import (
     FieldPrior,
     field_log_density,
@@ -119,6 +152,7 @@ __all__ = ["SamplerResult", "BetaProcessHMMSampler", "HYPERPARAMETER_RANGES", "c
 
 _NEG_INF = float("-inf")
 _LOOKAHEAD = 4  # map search: merges tried with a relabelling after them when no merge alone raises the score
+_POSITION_SCALE = 0.05  # prior expected covariance of a state's positions / the data's variance, per axis
 _BLOCK = 2  # features whose flips share one batched forward pass (2^2 - 1 = 3 variants per sequence)
 
 
@@ -180,6 +214,7 @@ HYPERPARAMETER_RANGES: dict[str, tuple[type, float, float, bool, bool]] = {
     "direction_noise": (float, 0.0, 2.0, False, True),
     "extra_dof": (float, 0.0, 1e6, False, True),
     "robust_dof": (float, 0.0, 1e6, False, True),
+    "position_weight": (float, 0.0, 1.0, True, True),
     "n_chains": (int, 1, 64, True, True),
     "n_iterations": (int, 1, 10_000, True, True),
     "burn_in": (float, 0.0, 1.0, True, False),
@@ -195,7 +230,8 @@ SELECTIONS = ("joint", "collapsed", "modal", "map")
 
 def check_hyperparameters(**values: object) -> None:
     """Raise InvalidArgumentError naming the first hyperparameter outside :data:`HYPERPARAMETER_RANGES` (booleans
-    ``resample_hyperparameters`` and ``progress`` must be bool; ``robust_dof`` may be None; ``selection`` is one of
+    ``resample_hyperparameters`` and ``progress`` must be bool; ``robust_dof`` and ``position_weight`` may be None;
+    ``selection`` is one of
     :data:`SELECTIONS`)."""
     for name, value in values.items():
         if name == "selection":
@@ -206,7 +242,7 @@ def check_hyperparameters(**values: object) -> None:
             if not isinstance(value, bool):
                 raise InvalidArgumentError(f"{name} must be a bool, got {value!r}")
             continue
-        if name == "robust_dof" and value is None:
+        if name in ("robust_dof", "position_weight") and value is None:
             continue
         kind, low, high, low_in, high_in = HYPERPARAMETER_RANGES[name]
         ok_type = isinstance(value, numbers.Integral) if kind is int else isinstance(value, numbers.Real)
@@ -216,7 +252,7 @@ def check_hyperparameters(**values: object) -> None:
         if not ok:
             what = "an integer" if kind is int else "a number"
             lo, hi = ("[" if low_in else "(") + f"{low:g}", f"{high:g}" + ("]" if high_in else ")")
-            extra = " or None" if name == "robust_dof" else ""
+            extra = " or None" if name in ("robust_dof", "position_weight") else ""
             raise InvalidArgumentError(f"{name} must be {what} in {lo}, {hi}{extra}, got {value!r}")
 
 
@@ -232,6 +268,8 @@ class BetaProcessHMMSampler:
             (:func:`~lfd_torch.segmentation.field.field_prior`).
         extra_dof: nu0 - d - 1 of the field prior (its weight).
         robust_dof: nu of the Student-t direction emission (None: Gaussian), see :mod:`.field`.
+        position_weight: tau of the tempered position term of the emission (module docstring, "Position"), in
+            [0, 1]; None: 1 / D, D the minimum duration in grid samples; 0: directions alone.
         n_chains: independent chains C (run batched).
         n_iterations: sweeps per chain.
         burn_in: fraction of the sweeps discarded before the best sample is searched.
@@ -257,7 +295,7 @@ class BetaProcessHMMSampler:
         direction_noise: float = 0.2,
         extra_dof: float = 2.0,
         robust_dof: float | None = 4.0,
-
+        position_weight: float | None = 0.0,
         n_chains: int = 4,
         n_iterations: int = 100,
         burn_in: float = 0.5,
@@ -271,8 +309,8 @@ class BetaProcessHMMSampler:
         check_hyperparameters(
             feature_mass=feature_mass, feature_concentration=feature_concentration,
             transition_concentration=transition_concentration, stickiness=stickiness,
-            direction_noise=direction_noise, extra_dof=extra_dof, robust_dof=robust_dof, n_chains=n_chains,
-            n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
+            direction_noise=direction_noise, extra_dof=extra_dof, robust_dof=robust_dof,
+            position_weight=position_weight, n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
             birth_window=birth_window, birth_prior_mix=birth_prior_mix,
             resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
         )  # fmt: skip
@@ -283,6 +321,7 @@ class BetaProcessHMMSampler:
         self.stickiness = float(stickiness)
         self.direction_noise = float(direction_noise)
         self.robust_dof = None if robust_dof is None else float(robust_dof)
+        self.position_weight = None if position_weight is None else float(position_weight)
         self.extra_dof = float(extra_dof)
         self.n_chains = int(n_chains)
         self.n_iterations = int(n_iterations)
@@ -383,6 +422,11 @@ class _Run:
         self.window = torch.minimum(self.window, lengths)
         self.accept = {"shared": [0, 0], "birth": [0, 0], "death": [0, 0]}
         self.D = int(min_duration)
+        # tempered position term (module docstring, "Position"): tau = 0 leaves it out (and draws nothing for it)
+        self.tau = 1.0 / self.D if cfg.position_weight is None else cfg.position_weight
+        self.pos = self.obs.z[..., : self.d]  # (N, T, d) standardised positions
+        self.pos_prior = niw_prior_from_data(self.pos[self.valid], covariance_scale=_POSITION_SCALE)
+        self.loc = self.spread = None  # (C, K, d), (C, K, d, d) position Gaussians when tau > 0
         self._initialise()
 
     # ------------------------------------------------------------------ helpers
@@ -396,15 +440,22 @@ class _Run:
             device=self.device,
         )  # fmt: skip
 
-    def _emission(self, field: Tensor, noise: Tensor) -> Tensor:
-        """(C, N, T, K) log emission densities of every sample under every slot; field (C, K, d, p), noise (C, K, d, d)."""
+    def _emission(self, field: Tensor, noise: Tensor, loc: Tensor | None = None, spread: Tensor | None = None) -> Tensor:
+        """(C, N, T, K) log emission densities of every sample under every slot; field (C, K, d, p), noise (C, K, d, d),
+        and (when tau > 0) the position Gaussians loc (C, K, d), spread (C, K, d, d)."""
         C, K = field.shape[:2]
         o = self.obs
         ll = field_log_likelihood(
             o.z.reshape(1, self.N * self.T, -1), o.u.reshape(1, self.N * self.T, -1), o.w.reshape(1, -1), field, noise,
             self.cfg.robust_dof,
         )
+        if self.tau > 0:
+            ll = ll + self.tau * gaussian_log_density(self.pos.reshape(1, self.N * self.T, -1), loc, spread)
         return ll.reshape(C, self.N, self.T, K)
+
+    def _position_statistics(self, onehot: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Tempered NIW statistics (tau n, tau sum x, tau sum x x^T) of the positions per state; onehot (B, N T, K)."""
+        return sufficient_statistics(self.pos.reshape(1, self.N * self.T, -1), onehot * self.tau)
 
     def _marginal(self, features: Tensor, weights: Tensor, log_emission: Tensor, lengths: Tensor) -> Tensor:
         """log p(x | f, eta, theta), states summed out. features (B, K), weights (B, K, K), log_emission (B, T, K)."""
@@ -443,6 +494,12 @@ class _Run:
                               dof=p.dof.expand(batch), scale=p.scale.expand(*batch, d, d))
         return sample_field(expanded, self.gen)
 
+    def _prior_draw_position(self, *batch: int) -> tuple[Tensor, Tensor]:
+        p = self.pos_prior
+        d = self.d
+        return sample_niw(NIWPrior(mean=p.mean.expand(*batch, d), kappa=p.kappa.expand(batch), dof=p.dof.expand(batch),
+                                   scale=p.scale.expand(*batch, d, d)), self.gen)
+
     # ------------------------------------------------------------------ initialisation
     def _initialise(self) -> None:
         C, N, K = self.C, self.N, self.cfg.n_initial_features
@@ -450,11 +507,13 @@ class _Run:
         seq = torch.randint(N, (C, K), generator=self.gen, device=self.device)
         n_start = (self.lengths - self.window + 1)[seq].to(self.dtype)
         start = (self._rand(C, K) * n_start).floor().long()
-        post = self._window_posterior(seq, start)
+        post, pos_post = self._window_posterior(seq, start)
         self.field, self.noise = sample_field(post, self.gen)  # (C, K, d, p), (C, K, d, d)
+        if self.tau > 0:
+            self.loc, self.spread = sample_niw(pos_post, self.gen)  # (C, K, d), (C, K, d, d)
         self.F = torch.ones(C, N, K, dtype=torch.bool, device=self.device)
         self.eta = self._gamma_prior_weights((N,), K)
-        self.loge = self._emission(self.field, self.noise)
+        self.loge = self._emission(self.field, self.noise, self.loc, self.spread)
         self.ll = self._marginal_all()
         self.s = torch.zeros(C, N, self.T, dtype=torch.long, device=self.device)
         self.phase = torch.zeros_like(self.s)
@@ -480,6 +539,9 @@ class _Run:
         q = self.field.shape[-1]
         self.field = self.field.gather(1, keep.view(C, K_new, 1, 1).expand(C, K_new, self.d, q))
         self.noise = self.noise.gather(1, keep.view(C, K_new, 1, 1).expand(C, K_new, self.d, self.d))
+        if self.tau > 0:
+            self.loc = self.loc.gather(1, keep.view(C, K_new, 1).expand(C, K_new, self.d))
+            self.spread = self.spread.gather(1, keep.view(C, K_new, 1, 1).expand(C, K_new, self.d, self.d))
         eta = self.eta.gather(2, keep.view(C, 1, K_new, 1).expand(C, N, K_new, K))
         self.eta = eta.gather(3, keep.view(C, 1, 1, K_new).expand(C, N, K_new, K_new))
         self.loge = self.loge.gather(-1, keep.view(C, 1, 1, K_new).expand(C, N, self.T, K_new))
@@ -495,11 +557,15 @@ class _Run:
         m, s = self._prior_draw(self.C, extra)
         self.field = torch.cat([self.field, m], 1)
         self.noise = torch.cat([self.noise, s], 1)
+        loc = spread = None
+        if self.tau > 0:
+            loc, spread = self._prior_draw_position(self.C, extra)
+            self.loc, self.spread = torch.cat([self.loc, loc], 1), torch.cat([self.spread, spread], 1)
         self.F = torch.cat([self.F, self.F.new_zeros(self.C, self.N, extra)], -1)
         new_eta = self._gamma_prior_weights((self.N,), K + extra)
         new_eta[:, :, :K, :K] = self.eta
         self.eta = new_eta
-        self.loge = torch.cat([self.loge, self._emission(m, s)], -1)
+        self.loge = torch.cat([self.loge, self._emission(m, s, loc, spread)], -1)
 
     # ------------------------------------------------------------------ moves
     def _shared_moves(self) -> None:
@@ -554,8 +620,9 @@ class _Run:
                     n_own[:, i] += torch.where(ok, torch.where(own, -1, 1), 0)
             self.ll = table.gather(-1, state.unsqueeze(-1)).squeeze(-1)
 
-    def _window_posterior(self, seq: Tensor, start: Tensor) -> FieldPrior:
-        """Field posterior of the windows x^(seq)[start : start + L_seq]; seq and start (...) long."""
+    def _window_posterior(self, seq: Tensor, start: Tensor) -> tuple[FieldPrior, NIWPrior | None]:
+        """Field posterior (and, when tau > 0, tempered position posterior) of the windows x^(seq)[start : start +
+        L_seq]; seq and start (...) long."""
         Lmax = int(self.window.max())
         offs = torch.arange(Lmax, device=self.device)
         idx = (start.unsqueeze(-1) + offs).clamp_max(self.T - 1)  # (..., Lmax)
@@ -563,22 +630,34 @@ class _Run:
         sq = seq.unsqueeze(-1)
         o = self.obs
         counts, szz, suz, suu = field_statistics(o.z[sq, idx], o.u[sq, idx], o.w[sq, idx], mask.unsqueeze(-1))
-        return field_posterior(self.prior, counts[..., 0], szz[..., 0, :, :], suz[..., 0, :, :], suu[..., 0, :, :])
+        post = field_posterior(self.prior, counts[..., 0], szz[..., 0, :, :], suz[..., 0, :, :], suu[..., 0, :, :])
+        if self.tau <= 0:
+            return post, None
+        n, sx, sxx = sufficient_statistics(self.pos[sq, idx], self.tau * mask.unsqueeze(-1))
+        return post, niw_posterior(self.pos_prior, n[..., 0], sx[..., 0, :], sxx[..., 0, :, :])
 
-    def _log_window_scores(self, field: Tensor, noise: Tensor) -> Tensor:
+    def _log_window_scores(self, field: Tensor, noise: Tensor, loc: Tensor | None, spread: Tensor | None) -> Tensor:
         """log r(W | theta_ci) over the window starts of every sequence: (C, N, T), -inf on invalid starts.
 
-        r weights a window by exp(mean log density of its samples under theta); field (C, N, d, p).
+        r weights a window by exp(mean log density of its samples under theta, the emission's); field (C, N, d, p).
         """
-        o = self.obs
-        ll = field_log_likelihood(o.z.unsqueeze(0), o.u.unsqueeze(0), o.w.unsqueeze(0), field.unsqueeze(2),
-                                  noise.unsqueeze(2), self.cfg.robust_dof)[..., 0]  # (C, N, T)
+        ll = self._emission_one(field, noise, loc, spread)[..., 0]  # (C, N, T)
         csum = torch.cat([ll.new_zeros(self.C, self.N, 1), ll.cumsum(-1)], dim=-1)  # (C, N, T + 1)
         starts = torch.arange(self.T, device=self.device)
         end = (starts.view(1, -1) + self.window.view(-1, 1)).clamp_max(self.T)  # (N, T)
         score = (csum.gather(-1, end.expand(self.C, -1, -1)) - csum[..., : self.T]) / self.window.view(1, -1, 1)
         valid = starts.view(1, -1) <= (self.lengths - self.window).view(-1, 1)  # (N, T)
         return torch.log_softmax(score.masked_fill(~valid, _NEG_INF), dim=-1)
+
+    def _emission_one(self, field: Tensor, noise: Tensor, loc: Tensor | None, spread: Tensor | None) -> Tensor:
+        """(C, N, T, 1) log emission of every sample of sequence i under the parameter of (c, i): field (C, N, d, p),
+        noise (C, N, d, d), loc (C, N, d), spread (C, N, d, d)."""
+        o = self.obs
+        ll = field_log_likelihood(o.z.unsqueeze(0), o.u.unsqueeze(0), o.w.unsqueeze(0), field.unsqueeze(2),
+                                  noise.unsqueeze(2), self.cfg.robust_dof)
+        if self.tau > 0:
+            ll = ll + self.tau * gaussian_log_density(self.pos.unsqueeze(0), loc.unsqueeze(2), spread.unsqueeze(2))
+        return ll
 
     def _birth_death(self) -> None:
         """Reversible-jump birth or death of one unique feature in every (chain, sequence), all in parallel.
@@ -602,12 +681,18 @@ class _Run:
         # birth: window W ~ uniform, theta* ~ q(. | W), one free slot per (c, i)
         start_b = (self._rand(C, N) * n_start).floor().long()
         seq_all = torch.arange(N, device=self.device).expand(C, N)
-        post = self._window_posterior(seq_all, start_b)
+        post, pos_post = self._window_posterior(seq_all, start_b)
         mp, sp = sample_field(post, self.gen)
         m0, s0 = self._prior_draw(C, N)
         from_prior = self._rand(C, N) < self.cfg.birth_prior_mix
         mean_b = torch.where(from_prior[..., None, None], m0, mp)
         cov_b = torch.where(from_prior[..., None, None], s0, sp)
+        loc_b = spread_b = loc_d = spread_d = loc_t = spread_t = None
+        if self.tau > 0:  # the position Gaussian is part of theta*: drawn from the same window, or the prior
+            lp_, cp_ = sample_niw(pos_post, self.gen)
+            l0, c0 = self._prior_draw_position(C, N)
+            loc_b = torch.where(from_prior[..., None], l0, lp_)
+            spread_b = torch.where(from_prior[..., None, None], c0, cp_)
         free = ~self.F.any(1)  # (C, K)
         rank = free.long().cumsum(-1) - 1
         target = torch.arange(N, device=self.device).view(1, N, 1)
@@ -620,25 +705,29 @@ class _Run:
         # one set of window scores for the parameter each move is about
         mean_t = torch.where(birth[..., None, None], mean_b, mean_d)
         cov_t = torch.where(birth[..., None, None], cov_b, cov_d)
-        log_r_all = self._log_window_scores(mean_t, cov_t)  # (C, N, T)
+        if self.tau > 0:
+            loc_d, spread_d = self.loc[cidx, slot_d], self.spread[cidx, slot_d]
+            loc_t = torch.where(birth[..., None], loc_b, loc_d)
+            spread_t = torch.where(birth[..., None, None], spread_b, spread_d)
+        log_r_all = self._log_window_scores(mean_t, cov_t, loc_t, spread_t)  # (C, N, T)
         start_d = torch.multinomial(torch.exp(log_r_all).reshape(C * N, self.T), 1, generator=self.gen).reshape(C, N)
         start_t = torch.where(birth, start_b, start_d)
         log_r = log_r_all.gather(-1, start_t.unsqueeze(-1)).squeeze(-1)
-        post_t = self._window_posterior(seq_all, start_t)
+        post_t, pos_post_t = self._window_posterior(seq_all, start_t)
         eps = self.cfg.birth_prior_mix
         log_prior_theta = field_log_density(mean_t, cov_t, self.prior)
-        log_q = torch.logaddexp(
-            math.log1p(-eps) + field_log_density(mean_t, cov_t, post_t), math.log(eps) + log_prior_theta
-        )
+        log_q_window = field_log_density(mean_t, cov_t, post_t)
+        if self.tau > 0:
+            log_prior_theta = log_prior_theta + niw_log_density(loc_t, spread_t, self.pos_prior)
+            log_q_window = log_q_window + niw_log_density(loc_t, spread_t, pos_post_t)
+        log_q = torch.logaddexp(math.log1p(-eps) + log_q_window, math.log(eps) + log_prior_theta)
         n_big = torch.where(birth, n_unique + 1, n_unique).clamp_min(1).to(self.dtype)
         log_extra = torch.log(rate) - torch.log(n_big) + log_prior_theta - log_q + log_r + torch.log(n_start)
         # proposed feature rows and emission columns
         slot = torch.where(birth, slot_b, slot_d)
         f_new = self.F.clone()
         f_new.scatter_(-1, slot.unsqueeze(-1), birth.unsqueeze(-1))
-        o = self.obs
-        le_b = field_log_likelihood(o.z.unsqueeze(0), o.u.unsqueeze(0), o.w.unsqueeze(0), mean_b.unsqueeze(2),
-                                    cov_b.unsqueeze(2), self.cfg.robust_dof)  # (C, N, T, 1)
+        le_b = self._emission_one(mean_b, cov_b, loc_b, spread_b)  # (C, N, T, 1)
         le_new = self.loge.clone()
         le_new.scatter_(-1, slot_b.view(C, N, 1, 1).expand(C, N, self.T, 1), le_b)
         ll_new = self._marginal(
@@ -659,7 +748,10 @@ class _Run:
             sb = slot_b[c_idx, i_idx]
             self.field[c_idx, sb] = mean_b[c_idx, i_idx]
             self.noise[c_idx, sb] = cov_b[c_idx, i_idx]
-            self.loge = self._emission(self.field, self.noise)
+            if self.tau > 0:
+                self.loc[c_idx, sb] = loc_b[c_idx, i_idx]
+                self.spread[c_idx, sb] = spread_b[c_idx, i_idx]
+            self.loge = self._emission(self.field, self.noise, self.loc, self.spread)
 
     def _sample_states(self) -> None:
         C, N, K = self.F.shape
@@ -692,11 +784,14 @@ class _Run:
             onehot.reshape(C, N * self.T, K),
         )
         self.field, self.noise = sample_field(field_posterior(self.prior, *stats), self.gen)
+        if self.tau > 0:
+            pos_stats = self._position_statistics(onehot.reshape(C, N * self.T, K))
+            self.loc, self.spread = sample_niw(niw_posterior(self.pos_prior, *pos_stats), self.gen)
         trans = transition_counts(self.s, self.lengths.expand(C, N), K, free_transitions(self.phase, self.D)).to(self.dtype)
         self.eta = sample_transition_weights_posterior(
             trans, self.F, self.alpha.view(C, 1, 1, 1), self.kappa.view(C, 1, 1, 1), self.gen
         )
-        self.loge = self._emission(self.field, self.noise)
+        self.loge = self._emission(self.field, self.noise, self.loc, self.spread)
         self.ll = self._marginal_all()
 
     def _sample_hyperparameters(self) -> None:
@@ -745,6 +840,8 @@ class _Run:
         lp = lp + (torch.log(trans.clamp_min(1e-300)) * free).sum((-1, -2))
         owned = f.any(1)  # (C, K)
         lp = lp + (field_log_density(self.field, self.noise, self.prior) * owned).sum(-1)
+        if self.tau > 0:
+            lp = lp + (niw_log_density(self.loc, self.spread, self.pos_prior) * owned).sum(-1)
         for c in range(C):
             lp[c] = lp[c] + ibp_log_prior(f[c], self.mass[c], self.cfg.feature_concentration).to(self.dtype)
             lp[c] = lp[c] + dirichlet_log_density_rows(P[c], f[c], float(self.alpha[c]), float(self.kappa[c])).sum()
@@ -794,6 +891,8 @@ class _Run:
             lp = lp + ((log_gamma + 0.5 * d * torch.log(lam)) * flat_valid).sum(-1)
             w = w * lam
         lp = lp + field_log_marginal_likelihood(self.prior, *field_statistics(z, u, w, onehot)).sum(-1)
+        if self.tau > 0:  # the tempered NIW evidence of each state's positions
+            lp = lp + niw_log_marginal_likelihood(self.pos_prior, *self._position_statistics(onehot)).sum(-1)
         counts = transition_counts(s, self.lengths.expand(B, N), K, free_transitions(phase, self.D)).to(self.dtype)
         lp = lp + dirichlet_multinomial_log_prob(counts, F, alpha.view(B, 1, 1, 1), kappa.view(B, 1, 1, 1)).sum(-1)
         lp = lp - torch.log(F.sum(-1).clamp_min(1).to(self.dtype)).sum(-1)  # uniform initial state
@@ -966,6 +1065,8 @@ class _Run:
         field, noise = self._posterior_mean_fields(s, K)
         o = self.obs
         le = field_log_likelihood(o.z, o.u, o.w, field.unsqueeze(0), noise.unsqueeze(0), self.cfg.robust_dof)
+        if self.tau > 0:
+            le = le + self.tau * gaussian_log_density(self.pos, *self._posterior_mean_positions(s, K))
         counts = transition_counts(s, self.lengths, K, free_transitions(duration_phases(s, D), D)).to(self.dtype)
         f = F.to(self.dtype)
         owned = f.unsqueeze(-1) * f.unsqueeze(-2)  # (N, K, K)
@@ -993,6 +1094,13 @@ class _Run:
         post = field_posterior(self.prior, *field_statistics(z, u, w, onehot))
         psi = post.scale / (post.dof - d - 1.0).clamp_min(1.0)[..., None, None]
         return post.mean[0], psi[0]
+
+    def _posterior_mean_positions(self, s: Tensor, K: int) -> tuple[Tensor, Tensor]:
+        """(K, d) posterior means and (K, d, d) posterior-mean covariances of the position Gaussians of a labelling
+        s (N, T) (tau > 0)."""
+        onehot = (torch.nn.functional.one_hot(s, K).to(self.dtype) * self.valid.to(self.dtype).unsqueeze(-1))
+        post = niw_posterior(self.pos_prior, *self._position_statistics(onehot.reshape(1, self.N * self.T, K)))
+        return post.mean[0], (post.scale / (post.dof - self.d - 1.0)[..., None, None])[0]
 
     def _runs_per_sequence(self) -> Tensor:
         """(C, N) long: runs of one state in every sequence (its number of pieces) in the current sample."""

@@ -785,6 +785,7 @@ def segment(
     direction_noise: float = 0.2,
     extra_dof: float = 30.0,
     robust_dof: float | None = 4.0,
+    position_weight: float | None = 0.0,
     feature_mass: float = 2.0,
     feature_concentration: float = 1.0,
     transition_concentration: float = 1.0,
@@ -838,7 +839,7 @@ def segment(
     sampler = BetaProcessHMMSampler(
         feature_mass=feature_mass, feature_concentration=feature_concentration,
         transition_concentration=transition_concentration, stickiness=stickiness,
-        direction_noise=direction_noise, extra_dof=extra_dof, robust_dof=robust_dof,
+        direction_noise=direction_noise, extra_dof=extra_dof, robust_dof=robust_dof, position_weight=position_weight,
         n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
         birth_window=birth_window, birth_prior_mix=birth_prior_mix,
         resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
