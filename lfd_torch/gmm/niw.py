@@ -127,7 +127,9 @@ def sufficient_statistics(x: Tensor, weights: Tensor) -> tuple[Tensor, Tensor, T
     """
     counts = weights.sum(-2)
     sums = weights.transpose(-1, -2) @ x
-    outer = torch.einsum("...nk,...ni,...nj->...kij", weights, x, x)
+    d = x.shape[-1]
+    # one matmul over the flattened outer products (a three-operand einsum is several times slower)
+    outer = (weights.transpose(-1, -2) @ (x.unsqueeze(-1) * x.unsqueeze(-2)).flatten(-2)).unflatten(-1, (d, d))
     return counts, sums, outer
 
 

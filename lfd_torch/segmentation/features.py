@@ -54,27 +54,27 @@ def ibp_log_prior(features: Tensor, mass: float | Tensor, concentration: float) 
     where K+ counts owned columns and K_h the columns with identical pattern h (Griffiths & Ghahramani 2011).
 
     Args:
-        features: (N, K) bool; columns nobody owns are ignored.
-        mass: gamma.
+        features: (..., N, K) bool; columns nobody owns are ignored.
+        mass: gamma, a number or (...).
         concentration: c.
 
     Returns:
-        scalar tensor.
+        (...) tensor (a scalar for one matrix).
     """
     f = features.to(torch.float64)
     n = f.shape[-2]
-    m = f.sum(-2)
+    m = f.sum(-2)  # (..., K)
     owned = m > 0
-    m = m[owned]
     mass_t = torch.as_tensor(mass, dtype=torch.float64, device=f.device)
     harmonic = sum(concentration / (concentration + j) for j in range(n))
-    k_plus = m.numel()
-    log_beta = torch.lgamma(m) + torch.lgamma(n - m + concentration) - math.lgamma(n + concentration)
-    cols = f[:, owned].T  # (K+, N)
-    empty = (None, torch.zeros(0, device=f.device))
-    _, multiplicity = torch.unique(cols, dim=0, return_counts=True) if k_plus else empty
-    log_hist = torch.lgamma(multiplicity.to(torch.float64) + 1.0).sum()
-    return k_plus * (torch.log(mass_t) + math.log(concentration)) - log_hist - mass_t * harmonic + log_beta.sum()
+    k_plus = owned.sum(-1).to(torch.float64)
+    log_beta = torch.lgamma(m.clamp_min(1.0)) + torch.lgamma(n - m + concentration) - math.lgamma(n + concentration)
+    log_beta = (log_beta * owned).sum(-1)
+    # K_h!: a column in a group of h identical owned columns adds log(h!) / h, so each group adds log(h!) once
+    same = (features.unsqueeze(-1) == features.unsqueeze(-2)).all(-3) & owned.unsqueeze(-1) & owned.unsqueeze(-2)
+    h = same.sum(-1).to(torch.float64)  # (..., K)
+    log_hist = (torch.where(owned, torch.lgamma(h + 1.0) / h.clamp_min(1.0), torch.zeros_like(h))).sum(-1)
+    return k_plus * (torch.log(mass_t) + math.log(concentration)) - log_hist - mass_t * harmonic + log_beta
 
 
 def sample_ibp(

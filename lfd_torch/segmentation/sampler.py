@@ -310,7 +310,8 @@ class BetaProcessHMMSampler:
             feature_mass=feature_mass, feature_concentration=feature_concentration,
             transition_concentration=transition_concentration, stickiness=stickiness,
             direction_noise=direction_noise, extra_dof=extra_dof, robust_dof=robust_dof,
-            position_weight=position_weight, n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
+            position_weight=position_weight, n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in,
+            n_initial_features=n_initial_features,
             birth_window=birth_window, birth_prior_mix=birth_prior_mix,
             resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
         )  # fmt: skip
@@ -440,7 +441,8 @@ class _Run:
             device=self.device,
         )  # fmt: skip
 
-    def _emission(self, field: Tensor, noise: Tensor, loc: Tensor | None = None, spread: Tensor | None = None) -> Tensor:
+    def _emission(self, field: Tensor, noise: Tensor, loc: Tensor | None = None,
+                  spread: Tensor | None = None) -> Tensor:
         """(C, N, T, K) log emission densities of every sample under every slot; field (C, K, d, p), noise (C, K, d, d),
         and (when tau > 0) the position Gaussians loc (C, K, d), spread (C, K, d, d)."""
         C, K = field.shape[:2]
@@ -857,8 +859,13 @@ class _Run:
         nu, d = self.cfg.robust_dof, self.d
         post = field_posterior(self.prior, *field_statistics(z, u, w, onehot))
         psi = post.scale / (post.dof - d - 1.0).clamp_min(1.0)[..., None, None]
-        _, q = field_log_likelihood(z, u, w, post.mean, psi, nu, maha_out=True)  # (B, n, K)
-        return max(nu + d - 2.0, 1e-3) / (nu + (q * onehot).sum(-1))
+        # each sample's residual under its own state only (padding rows of onehot are 0: q = 0 there)
+        B, n, K = onehot.shape
+        own_field = (onehot @ post.mean.flatten(-2)).unflatten(-1, post.mean.shape[-2:])  # (B, n, d, p)
+        own_prec = (onehot @ torch.cholesky_inverse(torch.linalg.cholesky(psi)).flatten(-2)).unflatten(-1, (d, d))
+        r = u - (own_field @ z.unsqueeze(-1)).squeeze(-1)  # (B, n, d)
+        q = w * (r.unsqueeze(-2) @ own_prec @ r.unsqueeze(-1)).reshape(B, n)
+        return max(nu + d - 2.0, 1e-3) / (nu + q)
 
     def _collapsed_score(self, s: Tensor, F: Tensor, phase: Tensor, alpha: Tensor, kappa: Tensor,
                          mass: Tensor) -> Tensor:
@@ -896,8 +903,7 @@ class _Run:
         counts = transition_counts(s, self.lengths.expand(B, N), K, free_transitions(phase, self.D)).to(self.dtype)
         lp = lp + dirichlet_multinomial_log_prob(counts, F, alpha.view(B, 1, 1, 1), kappa.view(B, 1, 1, 1)).sum(-1)
         lp = lp - torch.log(F.sum(-1).clamp_min(1).to(self.dtype)).sum(-1)  # uniform initial state
-        ibp = [ibp_log_prior(F[b], mass[b], self.cfg.feature_concentration) for b in range(B)]
-        return lp + torch.stack(ibp).to(self.dtype)
+        return lp + ibp_log_prior(F, mass, self.cfg.feature_concentration).to(self.dtype)
 
     # ------------------------------------------------------------------ driver
     def sample(self) -> SamplerResult:
@@ -1031,11 +1037,43 @@ class _Run:
                 if bool(sc[b] > score):
                     s, F = _compact_columns(cand[0][b], cand[1][b])
                     score, moved = sc[b], True
+            if not moved:  # last resort: split one state, its runs cut in two halves, then relabel
+                for s2, F2 in self._splits(s, F):
+                    s2, F2 = self._viterbi_relabel(s2, F2, float(hyper[0]), float(hyper[1]))
+                    sc2 = score_of(s2[None], F2[None])[0]
+                    if bool(sc2 > score):
+                        s, F, score, moved = s2, F2, sc2, True
+                        break
             if not moved:
                 break
         field, noise = self._posterior_mean_fields(s, F.shape[-1])
         return {**snap, "states": s, "features": F, "field": field, "noise": noise, "joint": math.nan,
                 "collapsed": float(score)}
+
+    def _splits(self, s: Tensor, F: Tensor) -> list[tuple[Tensor, Tensor]]:
+        """The split move of :meth:`_climb_to_mode`, one candidate per state k, most used first: the second half
+        (in time) of every run of k becomes a new state owned by the sequences that own k; the relabelling after it
+        moves the new switches to where the fields change."""
+        N, K = F.shape
+        t = torch.arange(self.T, device=self.device).expand(N, -1)
+        change = torch.cat([torch.zeros(N, 1, dtype=torch.long, device=self.device),
+                            (s[:, 1:] != s[:, :-1]).long()], 1)
+        rid = change.cumsum(1)  # (N, T) run index within each sequence
+        big = self.T + 1
+        first = torch.full((N, self.T), big, dtype=torch.long, device=self.device).scatter_reduce(
+            1, rid, t, "amin", include_self=True)
+        last = torch.full((N, self.T), -1, dtype=torch.long, device=self.device).scatter_reduce(
+            1, rid, torch.where(self.valid, t, torch.full_like(t, -1)), "amax", include_self=True)
+        mid = (first + last + 1) // 2  # (N, runs)
+        second = t >= mid.gather(1, rid)  # (N, T): in the second half of its run
+        used = (torch.nn.functional.one_hot(s, K).to(self.dtype) * self.valid.unsqueeze(-1)).sum((0, 1))
+        out = []
+        for k in torch.argsort(used, descending=True).tolist():
+            if float(used[k]) < 2 * self.D:  # each half must hold a run of the minimum duration
+                continue
+            s2 = torch.where((s == k) & second, torch.full_like(s, K), s)
+            out.append((s2, torch.cat([F, F[:, k : k + 1]], 1)))
+        return out
 
     def _reassignments(self, s: Tensor, F: Tensor) -> tuple[Tensor, Tensor] | None:
         """The reassign move of :meth:`_climb_to_mode`: every (sequence i, state k it uses, state j != k or a new
