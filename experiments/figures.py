@@ -6,7 +6,8 @@ plotting functions, on the stored segmentations, skill libraries and rollout pat
 the skill figures show are recomputed from the stored libraries with the same seeded starts and pushes.
 
 * ``segment_lasa``: ``segment_lasa_<set>.png`` (paper Figs 2, 6) from ``libraries/segment_lasa/<set>/``, and
-  ``segment_lasa_map_<set>.png`` (``selection="map"``) from ``libraries/segment_lasa_map/<set>/`` where stored;
+  ``segment_lasa_map_<set>.png`` (``selection="map", position_weight=None``) from
+  ``libraries/segment_lasa_map/<set>/`` where stored;
 * ``lasa_tasks``: per shape ``lasa_tasks_<shape>_{entropy,steps,modulation,pushes}.png`` and ``_tree.{txt,dot}``
   (Figs 3, 5-8) from ``libraries/lasa_tasks/`` and the summary ``tables/lasa_tasks.md``;
 * ``lasa_benchmark``: for every ``tables/lasa_benchmark*.parquet`` the Fig. 9 violins

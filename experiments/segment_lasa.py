@@ -11,7 +11,7 @@ Figures show each demonstration coloured by step over the regions where p(x | A_
     python experiments/segment_lasa.py seed=1 segmentation.n_iterations=80
     python experiments/segment_lasa.py -m seed=0,1,2
     python experiments/segment_lasa.py +experiment=segment_lasa_publish    # the README's table and figures
-    python experiments/segment_lasa.py +experiment=segment_lasa_map_publish    # the same with selection="map"
+    python experiments/segment_lasa.py +experiment=segment_lasa_map_publish    # selection="map", position_weight=None
 
 ``publish=true`` writes into ``paths.tables`` / ``paths.figures`` and stores each data set's segmentation and
 demonstrations under ``paths.libraries``/<experiment>/<name>/ (what ``experiments/figures.py`` redraws the figures

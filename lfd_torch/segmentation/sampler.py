@@ -49,7 +49,8 @@ Which sample (``selection``), among the sweeps of every chain after burn-in:
     "map": a local mode of the collapsed posterior p(s, F | u, z): from every chain's best collapsed sample, a
         coordinate ascent of the collapsed score (merge two states, alone or followed by a relabelling; reassign one
         state's runs in one sequence to another or a new state; Viterbi relabelling under the posterior-mean
-        parameters; :meth:`_Run._climb_to_mode`),
+        parameters; as a last resort, split one state by cutting its runs in halves, then relabel;
+        :meth:`_Run._climb_to_mode`),
         then the best of the chains' results, returned with the posterior-mean fields of its labelling. The merge is
         the move of split-merge samplers for the BP-HMM (Hughes, Fox & Sudderth 2012): it leaves a mode in which one
         step is carried by two states, which the one-feature-at-a-time moves cannot join. Taken greedily, as a mode
@@ -96,7 +97,13 @@ state's positions, the joint log probability the NIW density of (mu_k, Sigma_k))
 from the tempered posterior of the same window as the field. ``position_weight=0`` is the direction-only model
 (nothing is drawn for the positions; the default, which the stored tables were made with).
 Measured with ``selection="map"`` and tau = 1 / D (``experiments/bench_segmentation_seeds.py --selection map
---segment-option position_weight=None``): see the README's stability table.
+--segment-option position_weight=None``): every demonstration and route of LASA Multi_Models_1-4 gets its most
+common step count on 9 or 10 of 10 seeds, one route grouping per shape (without it, Multi_Models_4: 5-10 of 10,
+routes merged on 4 seeds); on the 280 synthetic cases (``bench_segmentation.py --parts synthetic --method
+segment_map --segment-option position_weight=None``) exact step count 81 %, every switch 74 % (direction-only map:
+70 %, 65 %; the joint default 91 %, 78 %): the position term does not cure the under-segmentation of single
+demonstrations described under "map". With "joint" it does not make LASA seed-stable (Multi_Models_1: 3-7 of 10,
+a one-off run of the same bench).
 
 Subsampling (done by :func:`lfd_torch.segmentation.segment`, ``max_samples``) bounds T: the forward recursion is
 sequential in T, so the cost of a sweep is about (number of feature blocks + 2) x T small batched operations.
@@ -987,7 +994,12 @@ class _Run:
             relabel: the Viterbi state sequences of every sequence under the posterior means of the fields, noise
                 and transition weights given the current labelling (features it owns but no longer uses dropped);
             reassign: in one sequence, the runs of one state given to another state or to a new one (the best of all
-                such moves, scored in one batched call): the partial merges and splits of state sharing.
+                such moves, scored in one batched call): the partial merges and splits of state sharing;
+            split (only when none of the above raises the score): one state's runs cut in halves, the second halves
+                a new state, then a relabelling; states tried most used first, the first that raises the score
+                kept. It is the split of split-merge samplers taken greedily: without it a chain that had carried
+                two consecutive steps by one state could not separate them (LASA Multi_Models_3 with the position
+                term: 6 steps on route {0-3} on 5 of 10 seeds without it, 9 with it).
         The fields returned with it are those posterior means; the joint log probability of a polished sample is
         not defined (no sampled parameters): nan.
         """

@@ -14,7 +14,9 @@ The model decides (NOTES.md sec. 2). A step of a demonstration is a maximal run 
 after the sampler creates, removes, merges or moves a step across a state switch. The steps come from:
     1. the emission (:mod:`.field`): each state is an affine field of motion directions over positions, so a
        state switch is where the direction of motion stops being one smooth function of the position (a corner,
-       a reversal, a cusp), not where a Gaussian would like to cut a long leg in two;
+       a reversal, a cusp), not where a Gaussian would like to cut a long leg in two; with ``position_weight``
+       the emission also carries a tempered Gaussian on the positions, which keeps distant pieces in different
+       states (:mod:`.sampler`, "Position");
     2. a minimum duration: a run of a state lasts at least ``min_length`` samples. This is part of the HMM
        (explicit-duration states, :func:`~lfd_torch.segmentation.transitions.expand_min_duration`), not a
        post-processing rule, and it is what NOTES.md sec. 2 asks of short runs: a sample whose velocity straddles a
@@ -816,6 +818,8 @@ def segment(
         direction_noise: tolerance of a state's direction field, the prior expected direction noise (unit
             vectors, ~radians).
         extra_dof: weight of that prior expectation (pseudo-observations of the noise covariance).
+        position_weight: tau of the tempered position Gaussian of every state, in [0, 1]; None: 1 / D (D the
+            minimum duration in grid samples); 0 (default): directions alone (:mod:`.sampler`, "Position").
         Remaining keyword arguments: see :class:`BetaProcessHMMSampler`; their accepted ranges (upper bounds where
             a hyperparameter scales the cost, with the measured cost) are
             :data:`~lfd_torch.segmentation.sampler.HYPERPARAMETER_RANGES`.
