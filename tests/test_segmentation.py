@@ -832,11 +832,13 @@ def test_duration_phases_count_samples_since_the_run_began_capped_at_d_minus_one
             assert got[tuple(idx)].tolist() == want
 
 
-def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(monkeypatch):
-    """selection="map": no merge of two states of the returned sample and no reassignment of one state's runs in
-    one sequence raises its collapsed score (every candidate scored one at a time here, relabelled in a loop), the
-    reported score is that of the returned labelling, and it is at least that of the best sampled one
-    (selection="collapsed", the same chains)."""
+@pytest.mark.parametrize("position_weight", [0.0, None], ids=["directions", "with_position"])
+def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(monkeypatch, position_weight):
+    """selection="map": no merge of two states of the returned sample, no reassignment of one state's runs in
+    one sequence and no split of one state (its runs cut in halves, found here in a loop over runs, then the
+    model's relabelling) raises its collapsed score (every candidate scored one at a time here), the reported
+    score is that of the returned labelling, and it is at least that of the best sampled one (selection="collapsed",
+    the same chains); with and without the position term."""
     syn = synthetic(*MUTATION_CASE)
     runs = []
     original = sampler_module._Run.sample
@@ -846,9 +848,11 @@ def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(m
         return original(self)
 
     monkeypatch.setattr(sampler_module._Run, "sample", capture)
-    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="map")
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="map",
+                  position_weight=position_weight)
     run, res = runs[-1], seg.sampler
-    best = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="collapsed")
+    best = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="collapsed",
+                   position_weight=position_weight)
     assert best.info["collapsed_log_prob"] <= seg.info["collapsed_log_prob"] + 1e-9
     assert math.isnan(seg.info["log_prob"])
     hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
@@ -883,6 +887,24 @@ def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(m
                 F2 = torch.cat([F, torch.zeros(run.N, 1, dtype=torch.bool)], 1)
                 F2[i, k], F2[i, j] = False, True
                 assert score(s2, F2) <= here + 1e-9, (i, k, j)
+    # nor does a split: the second half of every run of state k becomes a new state, then the Viterbi relabelling
+    for k in range(K):
+        s2 = s.clone()
+        for i in range(run.N):
+            n_i = int(run.lengths[i])
+            t = 0
+            while t < n_i:
+                end = t
+                while end + 1 < n_i and int(s[i, end + 1]) == int(s[i, t]):
+                    end += 1
+                if int(s[i, t]) == k:
+                    s2[i, (t + end + 1) // 2 : end + 1] = K
+                    if end == n_i - 1:
+                        s2[i, n_i:] = K  # padding repeats the last valid label
+                t = end + 1
+        F2 = torch.cat([F, F[:, k : k + 1]], 1)
+        s3, F3 = run._viterbi_relabel(s2, F2, float(hyper[0]), float(hyper[1]))
+        assert score(s3, F3) <= here + 1e-9, k
     # the fields returned with it are fitted to its labelling: each predicts the directions of its own samples
     assert res.field.shape[0] == K and torch.isfinite(res.noise).all()
     o = run.obs
