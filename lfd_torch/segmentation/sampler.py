@@ -67,7 +67,7 @@ Which sample (``selection``), among the sweeps of every chain after burn-in:
         found / true 0.91; 1 demonstration 62 %): under this prior the collapsed evidence of one affine field across
         a 27-46 degree corner of a single noisy demonstration beats two fields by 6-20 nats (straight_const_2d,
         study figures). A tighter free tolerance (``extra_dof=2 direction_noise=0.1``) restores the synthetic
-        families with "map" (90 %, 79 %) but makes LASA unstable again (Multi_Models_3: 4-8 of 10).
+        families with "map" (90 %, 80 %) but makes LASA unstable again (Multi_Models_3: 3-9 of 10).
 Recalibrating the prior for "collapsed" or "modal" is open. Settings measured on the 280 synthetic cases with
 no gain over the default joint choice: ``extra_dof=2, direction_noise=0.1`` with "collapsed" (exact 89 %, every
 switch 78 %; ``experiments/bench_segmentation.py --parts synthetic --seeds 10 --method segment_collapsed
