@@ -58,6 +58,27 @@ def _redraw_data(run: _Run, gen: torch.Generator) -> tuple[torch.Tensor, torch.T
     return u, s
 
 
+def _redraw_data_with_positions(run: _Run, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(z, u, s) ~ p(x, u | F, eta, theta) with the position term at tau = 1 (a proper generative model then):
+    states from the sticky chain, standardised positions x~_t ~ N(mu_s, Sigma_s), z = [x~, 1], and u_t = B_s z_t +
+    noise. Returns z (C, N, T, p), u (C, N, T, d) and s (C, N, T)."""
+    C, N, K = run.F.shape
+    P = transition_matrix(run.eta, run.F)
+    init = initial_distribution(run.F, F64)
+    s = torch.zeros(C, N, run.T, dtype=torch.long)
+    s[..., 0] = torch.multinomial(init.reshape(C * N, K), 1, generator=gen).reshape(C, N)
+    cc, nn = torch.meshgrid(torch.arange(C), torch.arange(N), indexing="ij")
+    for t in range(1, run.T):
+        s[..., t] = torch.multinomial(P[cc, nn, s[..., t - 1]].reshape(C * N, K), 1, generator=gen).reshape(C, N)
+    ci = torch.arange(C).view(C, 1, 1)
+    e_x = torch.randn(C, N, run.T, run.d, 1, generator=gen, dtype=F64)
+    x = run.loc[ci, s] + (torch.linalg.cholesky(run.spread)[ci, s] @ e_x).squeeze(-1)
+    z = torch.cat([x, torch.ones_like(x[..., :1])], -1)
+    e_u = torch.randn(C, N, run.T, run.d, 1, generator=gen, dtype=F64)
+    u = (run.field[ci, s] @ z.unsqueeze(-1)).squeeze(-1) + (torch.linalg.cholesky(run.noise)[ci, s] @ e_u).squeeze(-1)
+    return z, u, s
+
+
 def _z_scores(values: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
     """z of the overall mean against a reference, standard error from the spread of independent chains.
 
@@ -110,26 +131,29 @@ def _reference_ibp(n_draws: int = 200_000, random_mass: bool = False) -> tuple[t
 
 
 def _geweke_chain(
-    n_iter: int, burn: int, n_chains: int, seed: int, prior_kappa: float = 0.05, hyper: bool = False
+    n_iter: int, burn: int, n_chains: int, seed: int, prior_kappa: float = 0.05, hyper: bool = False,
+    position: bool = False,
 ) -> dict[str, torch.Tensor]:
     """Independent chains (one sampler run each: a run's chains share one data set); see :func:`_one_chain`."""
-    runs = [_one_chain(n_iter, burn, seed * 1000 + c, prior_kappa, hyper) for c in range(n_chains)]
+    runs = [_one_chain(n_iter, burn, seed * 1000 + c, prior_kappa, hyper, position) for c in range(n_chains)]
     return {k: torch.cat([r[k] for r in runs], 0) for k in runs[0]}
 
 
 def _one_chain(
-    n_iter: int, burn: int, seed: int, prior_kappa: float = 0.05, hyper: bool = False
+    n_iter: int, burn: int, seed: int, prior_kappa: float = 0.05, hyper: bool = False, position: bool = False
 ) -> dict[str, torch.Tensor]:
     """Run ``n_chains`` independent Geweke chains; returns per-chain samples (C, n_iter - burn, B) of statistics.
 
     The field prior V0 = I / ``prior_kappa`` (20 I) spreads the fields' offsets ~4.5 noise standard deviations
     apart, so that the birth window weights r(W | theta) are far from uniform. The emission is the Gaussian one
     (``robust_dof=None``): the Student-t scale mixture changes the parameter draw only (data augmentation). With ``hyper`` gamma, alpha and kappa are resampled every sweep
-    (started from draws of their priors Gamma(1, 1), Gamma(1, 0.01), Gamma(1, 0.01)).
+    (started from draws of their priors Gamma(1, 1), Gamma(1, 0.01), Gamma(1, 0.01)). With ``position`` the emission
+    carries the position Gaussian at ``position_weight=1`` and the positions (the field's covariates) are redrawn
+    with the directions.
     """
     cfg = BetaProcessHMMSampler(
         feature_mass=MASS, feature_concentration=CONC, transition_concentration=ALPHA, stickiness=KAPPA,
-        n_chains=1, n_initial_features=2, birth_window=0.1, robust_dof=None,
+        n_chains=1, n_initial_features=2, birth_window=0.1, robust_dof=None, position_weight=1.0 if position else 0.0,
     )  # fmt: skip
     d, p = 1, 2
     prior = FieldPrior(
@@ -146,7 +170,7 @@ def _one_chain(
         ones = torch.ones(1, dtype=F64)
         run.mass = sample_gamma(ones, gen)
         run.alpha, run.kappa = sample_gamma(ones, gen) / 0.01, sample_gamma(ones, gen) / 0.01
-    out: dict[str, list[torch.Tensor]] = {k: [] for k in ("kp", "row", "pi", "sigma", "mu", "mass")}
+    out: dict[str, list[torch.Tensor]] = {k: [] for k in ("kp", "row", "pi", "sigma", "mu", "mass", "loc", "spread")}
     for it in range(n_iter):
         run._compact()
         run._shared_moves()
@@ -155,13 +179,17 @@ def _one_chain(
         run._sample_parameters()
         if hyper:
             run._sample_hyperparameters()
-        us, s = _redraw_data(run, gen)
+        if position:
+            zs, us, s = _redraw_data_with_positions(run, gen)
+            run.pos = zs[0, ..., :d]
+        else:
+            zs, (us, s) = run.z0.unsqueeze(0), _redraw_data(run, gen)
         run.s = s
         run.phase = torch.zeros_like(s)
         # every chain is an independent Geweke chain with its own data set: per-chain observations
-        run.obs = FieldObservations(z=run.z0, u=us[0], w=torch.ones(N, T, dtype=F64), centre=run.obs.centre,
+        run.obs = FieldObservations(z=zs[0], u=us[0], w=torch.ones(N, T, dtype=F64), centre=run.obs.centre,
                                     radius=run.obs.radius)
-        run.loge = run._emission(run.field, run.noise)
+        run.loge = run._emission(run.field, run.noise, run.loc, run.spread)
         run.ll = run._marginal_all()
         if it < burn:
             continue
@@ -181,7 +209,13 @@ def _one_chain(
         out["sigma"].append(((run.noise[..., 0, 0] * f_owned).sum(-1) / f_owned.sum(-1)).unsqueeze(-1))
         out["mu"].append(((run.field[..., 0, 1] * f_owned).sum(-1) / f_owned.sum(-1)).unsqueeze(-1))
         out["mass"].append(run.mass.clone().unsqueeze(-1))
-    return {k: torch.stack(v, 1) for k, v in out.items()}  # (C, n_kept, B)
+        if position:  # relative to each chain's own NIW prior (set from its first data set)
+            pp = run.pos_prior
+            loc = run.loc[..., 0] - pp.mean[0]
+            spread = run.spread[..., 0, 0] / (pp.scale[0, 0] / (pp.dof - d - 1.0))
+            out["loc"].append(((loc * f_owned).sum(-1) / f_owned.sum(-1)).unsqueeze(-1))
+            out["spread"].append(((spread * f_owned).sum(-1) / f_owned.sum(-1)).unsqueeze(-1))
+    return {k: torch.stack(v, 1) for k, v in out.items() if v}  # (C, n_kept, B)
 
 
 @pytest.mark.slow
@@ -198,6 +232,27 @@ def test_geweke_features_transitions_and_emissions():
     for name, (values, ref) in checks.items():
         z = _z_scores(values, ref)
         # 4.5 sigma per bin: with 16 chains the standard error has 15 degrees of freedom (t tails), ~16 bins in all
+        assert bool((z.abs() < 4.5).all()), (name, values.mean((0, 1)).tolist(), ref.tolist(), z.tolist())
+
+
+@pytest.mark.slow
+def test_geweke_with_the_position_term():
+    """The same check with the tempered position Gaussian at tau = 1 (``position_weight=1``): its births (drawn from
+    the NIW posterior of the window's positions, with the NIW densities in the reversible-jump ratio), its Gibbs
+    draw and its emission leave the prior invariant; also E[mu_k] and E[Sigma_k] of the position Gaussians against
+    the NIW prior (mean m0, Psi0 / (nu0 - d - 1))."""
+    got = _geweke_chain(n_iter=300, burn=40, n_chains=16, seed=11, position=True)
+    kp_ref, row_ref, _ = _reference_ibp()
+    checks = {
+        "K+ histogram": (got["kp"], kp_ref),
+        "features-per-sequence histogram": (got["row"], row_ref),
+        "E[pi_jj] - (alpha + kappa) / (n alpha + kappa)": (got["pi"], torch.zeros(1, dtype=F64)),
+        "E[Sigma_k] = 1": (got["sigma"], torch.ones(1, dtype=F64)),
+        "E[mu_k - m0] = 0 (positions)": (got["loc"], torch.zeros(1, dtype=F64)),
+        "E[Sigma_k] / (Psi0 / (nu0 - d - 1)) = 1 (positions)": (got["spread"], torch.ones(1, dtype=F64)),
+    }
+    for name, (values, ref) in checks.items():
+        z = _z_scores(values, ref)
         assert bool((z.abs() < 4.5).all()), (name, values.mean((0, 1)).tolist(), ref.tolist(), z.tolist())
 
 
