@@ -240,7 +240,8 @@ def test_geweke_with_the_position_term():
     """The same check with the tempered position Gaussian at tau = 1 (``position_weight=1``): its births (drawn from
     the NIW posterior of the window's positions, with the NIW densities in the reversible-jump ratio), its Gibbs
     draw and its emission leave the prior invariant; also E[mu_k] and E[Sigma_k] of the position Gaussians against
-    the NIW prior (mean m0, Psi0 / (nu0 - d - 1))."""
+    the NIW prior (mean m0, Psi0 / (nu0 - d - 1)). Power, checked by mutation: without the window's NIW density in
+    the birth proposal density q the K+ histogram is off by z = 20-130."""
     got = _geweke_chain(n_iter=300, burn=40, n_chains=16, seed=11, position=True)
     kp_ref, row_ref, _ = _reference_ibp()
     checks = {
