@@ -571,7 +571,8 @@ def test_bad_input_typed_errors():
         ("n_chains", 1000), ("n_chains", True), ("n_iterations", 10**6), ("n_iterations", 0),
         ("max_samples", 5000), ("max_samples", 80.0), ("feature_mass", 1e6), ("feature_mass", float("nan")),
         ("stickiness", float("inf")), ("birth_window", 1.5), ("birth_prior_mix", 1.0), ("burn_in", 1.0),
-        ("direction_noise", 0.0), ("robust_dof", -1.0), ("progress", 1),
+        ("direction_noise", 0.0), ("robust_dof", -1.0), ("progress", 1), ("position_weight", 1.5),
+        ("position_weight", float("nan")), ("position_weight", "1/D"),
     ],
 )  # fmt: skip
 def test_hyperparameters_that_scale_the_cost_are_bounded(name, value):
