@@ -102,7 +102,7 @@ common step count on 9 or 10 of 10 seeds, one route grouping per shape (without 
 routes merged on 4 seeds); on the 280 synthetic cases (``bench_segmentation.py --parts synthetic --method
 segment_map --segment-option position_weight=None``) exact step count 81 %, every switch 74 % (direction-only map:
 70 %, 65 %; the joint default 91 %, 78 %): the position term does not cure the under-segmentation of single
-demonstrations described under "map". With "joint" it does not make LASA seed-stable (Multi_Models_1: 3-7 of 10,
+demonstrations described under "map". With "joint" it does not make LASA seed-stable (Multi_Models_1: 4-7 of 10,
 a one-off run of the same bench). With a free tolerance as well (``extra_dof=2``) the synthetic cases reach 83 %
 and 78 % (1 demonstration 83 %, 75 %), but LASA is less stable (Multi_Models_1's nearly straight route on 5 of 10
 seeds, Multi_Models_4 on 6-10): the trade-off of "map" between the tolerance and seed stability remains.
