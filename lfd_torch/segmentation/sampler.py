@@ -700,10 +700,10 @@ class _Run:
         cov_b = torch.where(from_prior[..., None, None], s0, sp)
         loc_b = spread_b = loc_d = spread_d = loc_t = spread_t = None
         if self.tau > 0:  # the position Gaussian is part of theta*: drawn from the same window, or the prior
-            lp_, cp_ = sample_niw(pos_post, self.gen)
+            loc_w, spread_w = sample_niw(pos_post, self.gen)
             l0, c0 = self._prior_draw_position(C, N)
-            loc_b = torch.where(from_prior[..., None], l0, lp_)
-            spread_b = torch.where(from_prior[..., None, None], c0, cp_)
+            loc_b = torch.where(from_prior[..., None], l0, loc_w)
+            spread_b = torch.where(from_prior[..., None, None], c0, spread_w)
         free = ~self.F.any(1)  # (C, K)
         rank = free.long().cumsum(-1) - 1
         target = torch.arange(N, device=self.device).view(1, N, 1)
