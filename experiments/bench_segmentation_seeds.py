@@ -6,8 +6,12 @@
 
 Segments all 7 demonstrations of each shape with default settings for seeds 0..N-1 and prints, per demonstration,
 the most common step count and on how many seeds it occurs, per route (of the most common grouping) the most common
-number of steps of the route and on how many seeds it occurs, and per shape the number of distinct route groupings.
-``--json`` also writes every seed's step counts, routes and segmentation wall time.
+number of steps of the route and on how many seeds it occurs, and per shape the number of distinct route groupings,
+and the attractor check of issue 7 (an intermediate attractor lies within 2 % of the data span of its
+demonstrations): the median over seeds of the worst distance from an intermediate g_m to the path of any
+demonstration that has step m, and of the best any sample of step m's own pieces could do by that measure
+(:func:`attractor_offsets`). ``--json`` also writes every seed's step counts, routes, attractor offsets and
+segmentation wall time.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ from __future__ import annotations
 import argparse
 import collections
 import json
+import statistics
 import time
 
 import torch
@@ -23,6 +28,30 @@ from lfd_torch.data import load_lasa
 from lfd_torch.segmentation import segment
 from lfd_torch.segmentation.sampler import SELECTIONS
 from bench_segmentation import segment_options
+
+
+def attractor_offsets(seg, sequences: list[torch.Tensor]) -> tuple[float, float]:
+    """(worst, bound) in % of the data span (the diagonal of the data's bounding box), over the intermediate steps.
+
+    worst: max over steps m and demonstrations i with a piece of step m of the distance from g_m to path i (all of
+    demonstration i's samples). bound: max over steps m of min over the samples p of step m's pieces of
+    max_i dist(p, path i), what the best sample of the step's own pieces would give as g_m. Both 0 when there is no
+    intermediate step.
+    """
+    x = torch.cat(sequences)
+    span = float((x.amax(0) - x.amin(0)).norm())
+    worst, bound = 0.0, 0.0
+    for m in range(seg.n_steps):
+        owners = [(i, a, b) for i, p in enumerate(seg.pieces) for step, a, b in p.tolist() if step == m]
+        if not owners or any(b == sequences[i].shape[0] for i, _, b in owners):
+            continue  # a route's last step ends at the task attractor
+        paths = [sequences[i] for i in sorted({i for i, _, _ in owners})]
+        g = seg.attractors[m].to(x)
+        worst = max(worst, max(float((q - g).norm(dim=-1).min()) for q in paths))
+        cand = torch.cat([sequences[i][a:b] for i, a, b in owners])
+        reach = torch.stack([torch.cdist(cand, q).amin(1) for q in paths]).amax(0)  # (n_cand,)
+        bound = max(bound, float(reach.min()))
+    return 100.0 * worst / span, 100.0 * bound / span
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -37,8 +66,9 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     options = segment_options(args.segment_option)
     torch.set_num_threads(1)
-    print("| shape | modal steps per demo (seeds of", args.seeds, ") | modal steps per route | distinct route groupings |")
-    print("|---|---|---|---|")
+    print("| shape | modal steps per demo (seeds of", args.seeds, ") | modal steps per route | distinct route groupings "
+          "| attractor off its demos, % span (best possible), median |")
+    print("|---|---|---|---|---|")
     out = {"settings": {"seeds": args.seeds, "selection": args.selection, "options": options}, "shapes": {}}
     for shape in args.shapes:
         demos = load_lasa(shape)
@@ -49,7 +79,10 @@ def main(argv: list[str] | None = None) -> None:
         for seed in range(args.seeds):
             t0 = time.perf_counter()
             seg = segment(demos, generator=torch.Generator().manual_seed(seed), selection=args.selection, **options)
-            runs.append({"seed": seed, "seconds": round(time.perf_counter() - t0, 3),
+            seconds = round(time.perf_counter() - t0, 3)
+            worst, bound = attractor_offsets(seg, demos.sequences())
+            runs.append({"seed": seed, "seconds": seconds, "attractor_off_pct": round(worst, 3),
+                         "attractor_bound_pct": round(bound, 3),
                          "steps_per_demo": [len(seg.step_sequence(i)) for i in range(demos.n_demos)],
                          "routes": [list(r) for r in seg.routes], "route_of": seg.route_of.tolist()})
             for i in range(demos.n_demos):
@@ -63,7 +96,9 @@ def main(argv: list[str] | None = None) -> None:
         top = groupings.most_common(1)[0][0]
         per_route = " ".join(f"{{{','.join(map(str, g))}}}: {route_steps[g].most_common(1)[0][0]} "
                              f"({route_steps[g].most_common(1)[0][1]})" for g in top)
-        print(f"| {shape} | {modal} | {per_route} | {len(groupings)} |", flush=True)
+        off = statistics.median(r["attractor_off_pct"] for r in runs)
+        bnd = statistics.median(r["attractor_bound_pct"] for r in runs)
+        print(f"| {shape} | {modal} | {per_route} | {len(groupings)} | {off:.1f} ({bnd:.1f}) |", flush=True)
         out["shapes"][shape] = {
             "modal_steps_per_demo": [list(c.most_common(1)[0]) for c in counts],
             "modal_steps_per_route": {",".join(map(str, g)): list(route_steps[g].most_common(1)[0]) for g in top},
