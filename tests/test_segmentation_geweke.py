@@ -34,12 +34,13 @@ from lfd_torch.segmentation.transitions import initial_distribution, transition_
 F64 = torch.float64
 
 
-def _redraw_data(run: _Run, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """u ~ p(u | x, F, eta, theta) for every chain: states from the sticky chain, Gaussian field emissions
-    u_t = B_s z_t + noise (the covariates z, the standardised positions, stay fixed; reliabilities w = 1).
+def _redraw_data(run: _Run, gen: torch.Generator, position: bool = False) -> tuple[torch.Tensor, ...]:
+    """(z, u, s) ~ p(data | F, eta, theta) for every chain: states from the sticky chain, Gaussian field emissions
+    u_t = B_s z_t + noise (reliabilities w = 1). The covariates z = [x~, 1] stay fixed (run.z0) unless ``position``:
+    then x~_t ~ N(mu_s, Sigma_s) first, the position term at tau = 1 (a proper generative model then).
 
     Returns:
-        u (C, N, T, d) and the states (C, N, T).
+        z (C, N, T, p), u (C, N, T, d) and the states (C, N, T).
     """
     C, N, K = run.F.shape
     P = transition_matrix(run.eta, run.F)  # (C, N, K, K)
@@ -50,33 +51,25 @@ def _redraw_data(run: _Run, gen: torch.Generator) -> tuple[torch.Tensor, torch.T
     for t in range(1, run.T):
         rows = P[cc, nn, s[..., t - 1]]  # (C, N, K)
         s[..., t] = torch.multinomial(rows.reshape(C * N, K), 1, generator=gen).reshape(C, N)
-    chol = torch.linalg.cholesky(run.noise)  # (C, K, d, d)
+    ci = torch.arange(C).view(C, 1, 1)
+    if position:
+        e_x = torch.randn(C, N, run.T, run.d, 1, generator=gen, dtype=F64)
+        x = run.loc[ci, s] + (torch.linalg.cholesky(run.spread)[ci, s] @ e_x).squeeze(-1)
+        z = torch.cat([x, torch.ones_like(x[..., :1])], -1)
+    else:
+        z = run.z0.unsqueeze(0).expand(C, N, run.T, -1)
     eps = torch.randn(C, N, run.T, run.d, 1, generator=gen, dtype=F64)
-    ci = torch.arange(C).view(C, 1, 1)
-    zc = run.z0.unsqueeze(0).expand(C, N, run.T, -1).unsqueeze(-1)  # (C, N, T, p, 1)
-    u = (run.field[ci, s] @ zc).squeeze(-1) + (chol[ci, s] @ eps).squeeze(-1)  # (C, N, T, d)
-    return u, s
-
-
-def _redraw_data_with_positions(run: _Run, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(z, u, s) ~ p(x, u | F, eta, theta) with the position term at tau = 1 (a proper generative model then):
-    states from the sticky chain, standardised positions x~_t ~ N(mu_s, Sigma_s), z = [x~, 1], and u_t = B_s z_t +
-    noise. Returns z (C, N, T, p), u (C, N, T, d) and s (C, N, T)."""
-    C, N, K = run.F.shape
-    P = transition_matrix(run.eta, run.F)
-    init = initial_distribution(run.F, F64)
-    s = torch.zeros(C, N, run.T, dtype=torch.long)
-    s[..., 0] = torch.multinomial(init.reshape(C * N, K), 1, generator=gen).reshape(C, N)
-    cc, nn = torch.meshgrid(torch.arange(C), torch.arange(N), indexing="ij")
-    for t in range(1, run.T):
-        s[..., t] = torch.multinomial(P[cc, nn, s[..., t - 1]].reshape(C * N, K), 1, generator=gen).reshape(C, N)
-    ci = torch.arange(C).view(C, 1, 1)
-    e_x = torch.randn(C, N, run.T, run.d, 1, generator=gen, dtype=F64)
-    x = run.loc[ci, s] + (torch.linalg.cholesky(run.spread)[ci, s] @ e_x).squeeze(-1)
-    z = torch.cat([x, torch.ones_like(x[..., :1])], -1)
-    e_u = torch.randn(C, N, run.T, run.d, 1, generator=gen, dtype=F64)
-    u = (run.field[ci, s] @ z.unsqueeze(-1)).squeeze(-1) + (torch.linalg.cholesky(run.noise)[ci, s] @ e_u).squeeze(-1)
+    chol = torch.linalg.cholesky(run.noise)  # (C, K, d, d)
+    u = (run.field[ci, s] @ z.unsqueeze(-1)).squeeze(-1) + (chol[ci, s] @ eps).squeeze(-1)  # (C, N, T, d)
     return z, u, s
+
+
+def _assert_matches(checks: dict[str, tuple[torch.Tensor, torch.Tensor]]) -> None:
+    """Every statistic's chain mean within 4.5 standard errors of its reference (:func:`_z_scores`): with 16 chains
+    the standard error has 15 degrees of freedom (t tails), ~16 bins in all."""
+    for name, (values, ref) in checks.items():
+        z = _z_scores(values, ref)
+        assert bool((z.abs() < 4.5).all()), (name, values.mean((0, 1)).tolist(), ref.tolist(), z.tolist())
 
 
 def _z_scores(values: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
@@ -179,11 +172,8 @@ def _one_chain(
         run._sample_parameters()
         if hyper:
             run._sample_hyperparameters()
-        if position:
-            zs, us, s = _redraw_data_with_positions(run, gen)
-            run.pos = zs[0, ..., :d]
-        else:
-            zs, (us, s) = run.z0.unsqueeze(0), _redraw_data(run, gen)
+        zs, us, s = _redraw_data(run, gen, position)
+        run.pos = zs[0, ..., :d]
         run.s = s
         run.phase = torch.zeros_like(s)
         # every chain is an independent Geweke chain with its own data set: per-chain observations
@@ -229,10 +219,7 @@ def test_geweke_features_transitions_and_emissions():
         "E[Sigma_k] = 1": (got["sigma"], torch.ones(1, dtype=F64)),
         "E[mu_k] = 0": (got["mu"], torch.zeros(1, dtype=F64)),
     }
-    for name, (values, ref) in checks.items():
-        z = _z_scores(values, ref)
-        # 4.5 sigma per bin: with 16 chains the standard error has 15 degrees of freedom (t tails), ~16 bins in all
-        assert bool((z.abs() < 4.5).all()), (name, values.mean((0, 1)).tolist(), ref.tolist(), z.tolist())
+    _assert_matches(checks)
 
 
 @pytest.mark.slow
@@ -252,9 +239,7 @@ def test_geweke_with_the_position_term():
         "E[mu_k - m0] = 0 (positions)": (got["loc"], torch.zeros(1, dtype=F64)),
         "E[Sigma_k] / (Psi0 / (nu0 - d - 1)) = 1 (positions)": (got["spread"], torch.ones(1, dtype=F64)),
     }
-    for name, (values, ref) in checks.items():
-        z = _z_scores(values, ref)
-        assert bool((z.abs() < 4.5).all()), (name, values.mean((0, 1)).tolist(), ref.tolist(), z.tolist())
+    _assert_matches(checks)
 
 
 @pytest.mark.slow
@@ -273,6 +258,4 @@ def test_geweke_with_hyperparameter_resampling():
         "E[gamma | non-empty rows]": (got["mass"], torch.tensor([mass_ref], dtype=F64)),
         "E[pi_jj] - (alpha + kappa) / (n alpha + kappa)": (got["pi"], torch.zeros(1, dtype=F64)),
     }
-    for name, (values, ref) in checks.items():
-        z = _z_scores(values, ref)
-        assert bool((z.abs() < 4.5).all()), (name, values.mean((0, 1)).tolist(), ref.tolist(), z.tolist())
+    _assert_matches(checks)
