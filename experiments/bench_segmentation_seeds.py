@@ -10,7 +10,8 @@ number of steps of the route and on how many seeds it occurs, and per shape the 
 and the attractor check of issue 7 (an intermediate attractor lies within 2 % of the data span of its
 demonstrations): the median over seeds of the worst distance from an intermediate g_m to the path of any
 demonstration that has step m, and of the best any sample of step m's own pieces could do by that measure
-(:func:`attractor_offsets`). ``--json`` also writes every seed's step counts, routes, attractor offsets and
+(:func:`attractor_offsets`), and the share of each route's path from which all of its demonstrations are within 2 %
+(:func:`route_coverage`, where any attractor of that route could satisfy the check). ``--json`` also writes every seed's step counts, routes, attractor offsets and
 segmentation wall time.
 """
 
@@ -54,6 +55,23 @@ def attractor_offsets(seg, sequences: list[torch.Tensor]) -> tuple[float, float]
     return 100.0 * worst / span, 100.0 * bound / span
 
 
+def route_coverage(seg, sequences: list[torch.Tensor], tol: float = 0.02) -> float:
+    """Min over the routes with an intermediate step of the % of their demonstrations' samples p with
+    max_i dist(p, path i) <= ``tol`` x span over the route's demonstrations i: where on the route an intermediate
+    attractor could lie on all of them, whatever the step boundaries (100 when no route has one)."""
+    x = torch.cat(sequences)
+    span = float((x.amax(0) - x.amin(0)).norm())
+    out = 100.0
+    for r, steps in enumerate(seg.routes):
+        members = [i for i in range(len(sequences)) if int(seg.route_of[i]) == r]
+        if len(steps) < 2 or len(members) < 2:
+            continue
+        cand = torch.cat([sequences[i] for i in members])
+        reach = torch.stack([torch.cdist(cand, sequences[i]).amin(1) for i in members]).amax(0)
+        out = min(out, 100.0 * float((reach <= tol * span).double().mean()))
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--shapes", nargs="+", default=[f"Multi_Models_{i}" for i in range(1, 5)])
@@ -67,8 +85,9 @@ def main(argv: list[str] | None = None) -> None:
     options = segment_options(args.segment_option)
     torch.set_num_threads(1)
     print("| shape | modal steps per demo (seeds of", args.seeds, ") | modal steps per route | distinct route groupings "
-          "| attractor off its demos, % span (best possible), median |")
-    print("|---|---|---|---|---|")
+          "| attractor off its demos, % span (best possible), median "
+          "| route path within 2 % of all its demos, % (min over routes), median |")
+    print("|---|---|---|---|---|---|")
     out = {"settings": {"seeds": args.seeds, "selection": args.selection, "options": options}, "shapes": {}}
     for shape in args.shapes:
         demos = load_lasa(shape)
@@ -81,8 +100,9 @@ def main(argv: list[str] | None = None) -> None:
             seg = segment(demos, generator=torch.Generator().manual_seed(seed), selection=args.selection, **options)
             seconds = round(time.perf_counter() - t0, 3)
             worst, bound = attractor_offsets(seg, demos.sequences())
+            coverage = route_coverage(seg, demos.sequences())
             runs.append({"seed": seed, "seconds": seconds, "attractor_off_pct": round(worst, 3),
-                         "attractor_bound_pct": round(bound, 3),
+                         "attractor_bound_pct": round(bound, 3), "route_coverage_pct": round(coverage, 1),
                          "steps_per_demo": [len(seg.step_sequence(i)) for i in range(demos.n_demos)],
                          "routes": [list(r) for r in seg.routes], "route_of": seg.route_of.tolist()})
             for i in range(demos.n_demos):
@@ -98,7 +118,9 @@ def main(argv: list[str] | None = None) -> None:
                              f"({route_steps[g].most_common(1)[0][1]})" for g in top)
         off = statistics.median(r["attractor_off_pct"] for r in runs)
         bnd = statistics.median(r["attractor_bound_pct"] for r in runs)
-        print(f"| {shape} | {modal} | {per_route} | {len(groupings)} | {off:.1f} ({bnd:.1f}) |", flush=True)
+        cov = statistics.median(r["route_coverage_pct"] for r in runs)
+        print(f"| {shape} | {modal} | {per_route} | {len(groupings)} | {off:.1f} ({bnd:.1f}) | {cov:.0f} |",
+              flush=True)
         out["shapes"][shape] = {
             "modal_steps_per_demo": [list(c.most_common(1)[0]) for c in counts],
             "modal_steps_per_route": {",".join(map(str, g)): list(route_steps[g].most_common(1)[0]) for g in top},

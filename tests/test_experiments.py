@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 from pathlib import Path
 
 import pandas as pd
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 
 from lfd_torch.store import KEY_COLUMNS, collect
@@ -172,3 +174,27 @@ def test_hyperparameter_sweep_presets_compose_and_tag_their_methods(preset):
     assert cfg.hydra.mode.name == "MULTIRUN" and len(params) >= 3
     tag = str(cfg.tag)
     assert tag and "$" not in tag  # every swept setting is resolved into the method name, so collect keeps rows apart
+
+
+def test_attractor_checks_of_the_seed_bench_against_closed_forms():
+    """``attractor_offsets`` and ``route_coverage`` on two parallel straight demonstrations 0.1 apart (span
+    sqrt(1 + 0.01)), one route of two steps switching at x = 0.5: the mean end point (0.5, 0.05) is 0.05 from either
+    path, the best sample of the step 0.1 (a point of one path is 0.1 from the other), and no sample has both paths
+    within 2 % of the span (0 %); with the second demonstration on top of the first, everything lies on both."""
+    import types
+
+    import bench_segmentation_seeds as bench
+
+    x = torch.linspace(0.0, 1.0, 101, dtype=torch.float64)
+    a = torch.stack([x, torch.zeros_like(x)], -1)
+    b = torch.stack([x, torch.full_like(x, 0.1)], -1)
+    pieces = [torch.tensor([[0, 0, 51], [1, 51, 101]]), torch.tensor([[0, 0, 51], [1, 51, 101]])]
+    seg = types.SimpleNamespace(n_steps=2, pieces=pieces, routes=((0, 1),), route_of=torch.tensor([0, 0]),
+                                attractors=torch.tensor([[0.5, 0.05], [1.0, 0.05]], dtype=torch.float64))
+    span = math.sqrt(1.01)
+    worst, bound = bench.attractor_offsets(seg, [a, b])
+    assert worst == pytest.approx(100 * 0.05 / span) and bound == pytest.approx(100 * 0.1 / span)
+    assert bench.route_coverage(seg, [a, b]) == 0.0
+    seg.attractors = torch.tensor([[0.5, 0.0], [1.0, 0.0]], dtype=torch.float64)
+    assert bench.attractor_offsets(seg, [a, a.clone()]) == (0.0, 0.0)
+    assert bench.route_coverage(seg, [a, a.clone()]) == 100.0
