@@ -469,18 +469,28 @@ class _Run:
         """(C, N, T, K) log emission densities of every sample under every slot; field (C, K, d, p), noise (C, K, d, d),
         and (when tau > 0) the position Gaussians loc (C, K, d), spread (C, K, d, d)."""
         C, K = field.shape[:2]
-        o = self.obs
-        ll = field_log_likelihood(
-            o.z.reshape(1, self.N * self.T, -1), o.u.reshape(1, self.N * self.T, -1), o.w.reshape(1, -1), field, noise,
-            self.cfg.robust_dof,
-        )
+        z, u, w, pos = self._flat_observations()
+        ll = field_log_likelihood(z, u, w, field, noise, self.cfg.robust_dof)
         if self.tau > 0:
-            ll = ll + self.tau * gaussian_log_density(self.pos.reshape(1, self.N * self.T, -1), loc, spread)
+            ll = ll + self.tau * gaussian_log_density(pos, loc, spread)
         return ll.reshape(C, self.N, self.T, K)
+
+    def _chain_view(self, t: Tensor, dims: int) -> Tensor:
+        """Observations with a leading chain axis: (1, ...) when shared by all chains (a tensor of ``dims``
+        dimensions), as they are (C, ...) when every chain has its own (the Geweke test's successive-conditional
+        chains, which redraw the data per chain). Only the sampling moves read per-chain observations; the collapsed
+        score and the map search assume shared ones."""
+        return t if t.dim() > dims else t.unsqueeze(0)
+
+    def _flat_observations(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """z (1 or C, N T, p), u (., N T, d), w (., N T), positions (., N T, d)."""
+        o = self.obs
+        return (self._chain_view(o.z, 3).flatten(1, 2), self._chain_view(o.u, 3).flatten(1, 2),
+                self._chain_view(o.w, 2).flatten(1, 2), self._chain_view(self.pos, 3).flatten(1, 2))
 
     def _position_statistics(self, onehot: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Tempered NIW statistics (tau n, tau sum x, tau sum x x^T) of the positions per state; onehot (B, N T, K)."""
-        return sufficient_statistics(self.pos.reshape(1, self.N * self.T, -1), onehot * self.tau)
+        return sufficient_statistics(self._chain_view(self.pos, 3).flatten(1, 2), onehot * self.tau)
 
     def _marginal(self, features: Tensor, weights: Tensor, log_emission: Tensor, lengths: Tensor) -> Tensor:
         """log p(x | f, eta, theta), states summed out. features (B, K), weights (B, K, K), log_emission (B, T, K)."""
@@ -654,11 +664,14 @@ class _Run:
         mask = (offs < self.window[seq].unsqueeze(-1)).to(self.dtype)  # (..., Lmax)
         sq = seq.unsqueeze(-1)
         o = self.obs
-        counts, szz, suz, suu = field_statistics(o.z[sq, idx], o.u[sq, idx], o.w[sq, idx], mask.unsqueeze(-1))
+        # seq (C, ...): with per-chain observations every chain reads its own
+        ci = torch.arange(self.C, device=self.device).view(-1, *([1] * (sq.dim() - 1))) if o.w.dim() > 2 else 0
+        cz, cu, cw, cp = (self._chain_view(t, n) for t, n in ((o.z, 3), (o.u, 3), (o.w, 2), (self.pos, 3)))
+        counts, szz, suz, suu = field_statistics(cz[ci, sq, idx], cu[ci, sq, idx], cw[ci, sq, idx], mask.unsqueeze(-1))
         post = field_posterior(self.prior, counts[..., 0], szz[..., 0, :, :], suz[..., 0, :, :], suu[..., 0, :, :])
         if self.tau <= 0:
             return post, None
-        n, sx, sxx = sufficient_statistics(self.pos[sq, idx], self.tau * mask.unsqueeze(-1))
+        n, sx, sxx = sufficient_statistics(cp[ci, sq, idx], self.tau * mask.unsqueeze(-1))
         return post, niw_posterior(self.pos_prior, n[..., 0], sx[..., 0, :], sxx[..., 0, :, :])
 
     def _log_window_scores(self, field: Tensor, noise: Tensor, loc: Tensor | None, spread: Tensor | None) -> Tensor:
@@ -678,10 +691,11 @@ class _Run:
         """(C, N, T, 1) log emission of every sample of sequence i under the parameter of (c, i): field (C, N, d, p),
         noise (C, N, d, d), loc (C, N, d), spread (C, N, d, d)."""
         o = self.obs
-        ll = field_log_likelihood(o.z.unsqueeze(0), o.u.unsqueeze(0), o.w.unsqueeze(0), field.unsqueeze(2),
-                                  noise.unsqueeze(2), self.cfg.robust_dof)
+        ll = field_log_likelihood(self._chain_view(o.z, 3), self._chain_view(o.u, 3), self._chain_view(o.w, 2),
+                                  field.unsqueeze(2), noise.unsqueeze(2), self.cfg.robust_dof)
         if self.tau > 0:
-            ll = ll + self.tau * gaussian_log_density(self.pos.unsqueeze(0), loc.unsqueeze(2), spread.unsqueeze(2))
+            ll = ll + self.tau * gaussian_log_density(self._chain_view(self.pos, 3), loc.unsqueeze(2),
+                                                      spread.unsqueeze(2))
         return ll
 
     def _birth_death(self) -> None:
@@ -798,16 +812,14 @@ class _Run:
         w = o.w.expand(C, N, self.T)
         if self.cfg.robust_dof is not None:  # Student t as a scale mixture: lambda_t | state, residual
             nu = self.cfg.robust_dof
-            _, q = field_log_likelihood(o.z.unsqueeze(0), o.u.unsqueeze(0), o.w.unsqueeze(0), self.field.unsqueeze(1),
-                                        self.noise.unsqueeze(1), nu, maha_out=True)  # (C, N, T, K)
+            _, q = field_log_likelihood(self._chain_view(o.z, 3), self._chain_view(o.u, 3), self._chain_view(o.w, 2),
+                                        self.field.unsqueeze(1), self.noise.unsqueeze(1), nu, maha_out=True)  # (C, N, T, K)
             q_s = q.gather(-1, self.s.unsqueeze(-1)).squeeze(-1)
             shape = torch.full_like(q_s, 0.5 * (nu + self.d))
             lam = sample_gamma(shape, self.gen) / (0.5 * (nu + q_s))
             w = w * lam
-        stats = field_statistics(
-            o.z.reshape(1, N * self.T, -1), o.u.reshape(1, N * self.T, -1), w.reshape(C, N * self.T),
-            onehot.reshape(C, N * self.T, K),
-        )
+        z, u, _, _ = self._flat_observations()
+        stats = field_statistics(z, u, w.reshape(C, N * self.T), onehot.reshape(C, N * self.T, K))
         self.field, self.noise = sample_field(field_posterior(self.prior, *stats), self.gen)
         if self.tau > 0:
             pos_stats = self._position_statistics(onehot.reshape(C, N * self.T, K))
