@@ -629,7 +629,7 @@ def test_bad_input_typed_errors():
         ("max_samples", 5000), ("max_samples", 80.0), ("feature_mass", 1e6), ("feature_mass", float("nan")),
         ("stickiness", float("inf")), ("birth_window", 1.5), ("birth_prior_mix", 1.0), ("burn_in", 1.0),
         ("direction_noise", 0.0), ("robust_dof", -1.0), ("progress", 1), ("position_weight", 1.5),
-        ("position_weight", float("nan")), ("position_weight", "1/D"),
+        ("position_weight", float("nan")), ("position_weight", "1/D"), ("straight_weight", 1.0), ("straight_weight", -0.1),
     ],
 )  # fmt: skip
 def test_hyperparameters_that_scale_the_cost_are_bounded(name, value):
@@ -890,13 +890,16 @@ def test_duration_phases_count_samples_since_the_run_began_capped_at_d_minus_one
             assert got[tuple(idx)].tolist() == want
 
 
-@pytest.mark.parametrize("position_weight", [0.0, None], ids=["directions", "with_position"])
-def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(monkeypatch, position_weight):
+@pytest.mark.parametrize(("position_weight", "straight_weight"), [(0.0, 0.0), (None, 0.0), (None, 0.5)],
+                         ids=["directions", "with_position", "with_straight_states"])
+def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(monkeypatch, position_weight,
+                                                                               straight_weight):
     """selection="map": no merge of two states of the returned sample, no reassignment of one state's runs in
     one sequence and no split of one state (its runs cut in halves, found here in a loop over runs, then the
     model's relabelling) raises its collapsed score (every candidate scored one at a time here), the reported
     score is that of the returned labelling, and it is at least that of the best sampled one (selection="collapsed",
-    the same chains); with and without the position term."""
+    the same chains); with and without the position term, and with the spike-and-slab (straight or affine) field
+    prior."""
     syn = synthetic(*MUTATION_CASE)
     runs = []
     original = sampler_module._Run.sample
@@ -907,10 +910,10 @@ def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(m
 
     monkeypatch.setattr(sampler_module._Run, "sample", capture)
     seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="map",
-                  position_weight=position_weight)
+                  position_weight=position_weight, straight_weight=straight_weight)
     run, res = runs[-1], seg.sampler
     best = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="collapsed",
-                   position_weight=position_weight)
+                   position_weight=position_weight, straight_weight=straight_weight)
     assert best.info["collapsed_log_prob"] <= seg.info["collapsed_log_prob"] + 1e-9
     assert math.isnan(seg.info["log_prob"])
     hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)

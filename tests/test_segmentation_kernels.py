@@ -346,3 +346,47 @@ def test_viterbi_matches_brute_force_enumeration_with_padding():
                 best, arg = lp, seq
         assert got[b, :n].tolist() == list(arg)
         assert got[b, n:].tolist() == [arg[-1]] * (T - n)
+
+
+def test_straight_or_affine_field_evidence_and_posterior_against_monte_carlo():
+    """Spike-and-slab field prior (straight with probability rho, else affine): the evidence against the mean
+    likelihood of 400,000 prior draws (a quarter of them with the slope set to 0 for rho = 0.25), P(straight | u)
+    and the posterior-mean field against the same draws weighted by their likelihood (self-normalised importance
+    sampling); the straight evidence is the affine one in the limit of a zero-variance slope prior."""
+    from lfd_torch.segmentation.field import (
+        FieldPrior, field_log_likelihood, field_log_marginal_likelihood, field_mixture_evidence,
+        field_mixture_posterior_mean, field_prior, field_statistics, sample_field, straight_field_prior,
+    )  # fmt: skip
+
+    gen = torch.Generator().manual_seed(4)
+    d, n, rho, M = 2, 4, 0.25, 400_000
+    prior = field_prior(d, direction_noise=0.6, extra_dof=4.0)
+    x = torch.randn(n, d, generator=gen, dtype=F64)
+    z = torch.cat([x, torch.ones(n, 1, dtype=F64)], -1)
+    u = torch.tensor([0.8, 0.3], dtype=F64) + 0.1 * torch.randn(n, d, generator=gen, dtype=F64) + 0.2 * x.flip(-1)
+    w = torch.rand(n, generator=gen, dtype=F64) * 0.5 + 0.5
+    stats = field_statistics(z, u, w, torch.ones(n, 1, dtype=F64))
+    ev, log_ps = field_mixture_evidence(prior, *stats, rho)
+    mean, psi = field_mixture_posterior_mean(prior, *stats, rho)
+    draws = FieldPrior(prior.mean.expand(M, d, d + 1), prior.row_covariance.expand(M, d + 1, d + 1),
+                       prior.dof.expand(M), prior.scale.expand(M, d, d))  # fmt: skip
+    b, noise = sample_field(draws, gen)
+    straight = torch.rand(M, generator=gen, dtype=F64) < rho
+    b = torch.where(straight[:, None, None], torch.cat([torch.zeros_like(b[..., :-1]), b[..., -1:]], -1), b)
+    loglik = field_log_likelihood(z, u, w, b, noise).sum(0)  # (M,)
+    mc = torch.logsumexp(loglik, 0) - math.log(M)
+    assert float(ev[0] + 0.5 * d * torch.log(w).sum()) == pytest.approx(float(mc), abs=0.03)
+    weights = torch.softmax(loglik, 0)
+    assert float(torch.exp(log_ps[0])) == pytest.approx(float(weights[straight].sum()), abs=0.02)
+    torch.testing.assert_close(mean[0], (weights[:, None, None] * b).sum(0), atol=0.03, rtol=0)
+    torch.testing.assert_close(psi[0], (weights[:, None, None] * noise).sum(0), atol=0.03, rtol=0)
+    # the straight model is the affine one whose slope prior variance tends to 0 (V0 is diagonal here)
+    v0 = prior.row_covariance.clone()
+    v0[:d, :d] = torch.eye(d, dtype=F64) * 1e-12
+    narrow = FieldPrior(prior.mean, v0, prior.dof, prior.scale)
+    counts, szz, suz, suu = stats
+    ev_s = field_log_marginal_likelihood(straight_field_prior(prior), counts, szz[..., -1:, -1:], suz[..., -1:], suu)
+    assert float(field_log_marginal_likelihood(narrow, *stats)[0]) == pytest.approx(float(ev_s[0]), abs=1e-4)
+    ev_a = field_log_marginal_likelihood(prior, *stats)
+    mix = torch.logaddexp(math.log(rho) + ev_s, math.log1p(-rho) + ev_a)
+    assert float(ev[0]) == pytest.approx(float(mix[0]), abs=1e-12)

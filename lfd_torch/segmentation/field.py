@@ -79,7 +79,8 @@ from lfd_torch.gmm import NIWPrior, inverse_wishart_log_density, log_multigamma,
 from lfd_torch.gmm.gaussian import LOG_2PI
 
 __all__ = ["FieldPrior", "FieldObservations", "field_observations", "field_prior", "field_statistics",
-           "field_posterior", "field_log_marginal_likelihood", "sample_field", "field_log_density",
+           "field_posterior", "field_log_marginal_likelihood", "straight_field_prior", "field_mixture_evidence",
+           "field_mixture_posterior_mean", "sample_field", "field_log_density",
            "field_log_likelihood",
            "field_log_likelihood_additive"]
 
@@ -251,6 +252,52 @@ def field_log_marginal_likelihood(prior: FieldPrior, counts: Tensor, szz: Tensor
         - 0.5 * post.dof * _chol_logdet(post.scale)
     )
     return torch.where(counts > 0, out, torch.zeros_like(out))
+
+
+def straight_field_prior(prior: FieldPrior) -> FieldPrior:
+    """The prior of a straight state: slope fixed at 0, so the field is its offset column alone (regressor [1])."""
+    return FieldPrior(mean=prior.mean[..., -1:], row_covariance=prior.row_covariance[..., -1:, -1:], dof=prior.dof,
+                      scale=prior.scale)
+
+
+def field_mixture_evidence(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor,
+                           straight_weight: float) -> tuple[Tensor, Tensor]:
+    """Evidence of a state under the spike-and-slab field prior: straight (slope 0) with probability rho =
+    ``straight_weight``, else affine (``prior``).
+
+        p(u | z) = rho p(u | z, straight) + (1 - rho) p(u | z, affine),
+
+    both MNIW evidences (:func:`field_log_marginal_likelihood`; the straight one on the statistics of the offset
+    regressor alone). Batch shape (..., K); 0 for empty states.
+
+    Returns:
+        log p(u | z) and log P(straight | u, z) (-inf when rho = 0).
+    """
+    ev_a = field_log_marginal_likelihood(prior, counts, szz, suz, suu)
+    if straight_weight <= 0:
+        return ev_a, torch.full_like(ev_a, float("-inf"))
+    ev_s = field_log_marginal_likelihood(straight_field_prior(prior), counts, szz[..., -1:, -1:], suz[..., -1:], suu)
+    log_s = math.log(straight_weight) + ev_s
+    ev = torch.logaddexp(math.log1p(-straight_weight) + ev_a, log_s)
+    return ev, log_s - ev
+
+
+def field_mixture_posterior_mean(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor,
+                                 straight_weight: float) -> tuple[Tensor, Tensor]:
+    """Posterior means E[B | u, z] (..., K, d, p) and E[Psi | u, z] (..., K, d, d) under the spike-and-slab prior of
+    :func:`field_mixture_evidence`: the two posteriors' means weighted by P(straight | u, z) (a straight field's
+    slope columns are 0)."""
+    post = field_posterior(prior, counts, szz, suz, suu)
+    d = suu.shape[-1]
+    psi = post.scale / (post.dof - d - 1.0).clamp_min(1.0)[..., None, None]
+    if straight_weight <= 0:
+        return post.mean, psi
+    _, log_ps = field_mixture_evidence(prior, counts, szz, suz, suu, straight_weight)
+    straight = field_posterior(straight_field_prior(prior), counts, szz[..., -1:, -1:], suz[..., -1:], suu)
+    psi_s = straight.scale / (straight.dof - d - 1.0).clamp_min(1.0)[..., None, None]
+    mean_s = torch.cat([torch.zeros_like(post.mean[..., :-1]), straight.mean], -1)
+    ps = torch.exp(log_ps)[..., None, None]
+    return ps * mean_s + (1 - ps) * post.mean, ps * psi_s + (1 - ps) * psi
 
 
 def sample_field(params: FieldPrior, generator: torch.Generator) -> tuple[Tensor, Tensor]:

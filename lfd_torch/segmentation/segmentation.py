@@ -788,6 +788,7 @@ def segment(
     extra_dof: float = 30.0,
     robust_dof: float | None = 4.0,
     position_weight: float | None = 0.0,
+    straight_weight: float = 0.0,
     feature_mass: float = 2.0,
     feature_concentration: float = 1.0,
     transition_concentration: float = 1.0,
@@ -820,6 +821,8 @@ def segment(
         extra_dof: weight of that prior expectation (pseudo-observations of the noise covariance).
         position_weight: tau of the tempered position Gaussian of every state, in [0, 1]; None: 1 / D (D the
             minimum duration in grid samples); 0 (default): directions alone (:mod:`.sampler`, "Position").
+        straight_weight: prior probability that a state's field is straight (slope 0) in the collapsed score, in
+            [0, 1); it acts through ``selection="map"`` (:mod:`.sampler`, "Straight states"); 0 (default): affine.
         Remaining keyword arguments: see :class:`BetaProcessHMMSampler`; their accepted ranges (upper bounds where
             a hyperparameter scales the cost, with the measured cost) are
             :data:`~lfd_torch.segmentation.sampler.HYPERPARAMETER_RANGES`.
@@ -844,7 +847,7 @@ def segment(
         feature_mass=feature_mass, feature_concentration=feature_concentration,
         transition_concentration=transition_concentration, stickiness=stickiness,
         direction_noise=direction_noise, extra_dof=extra_dof, robust_dof=robust_dof, position_weight=position_weight,
-        n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
+        straight_weight=straight_weight, n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
         birth_window=birth_window, birth_prior_mix=birth_prior_mix,
         resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
     )  # fmt: skip
