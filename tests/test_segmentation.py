@@ -975,3 +975,29 @@ def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(m
             pred = torch.einsum("ij,nj->ni", res.field[k], o.z[own])
             cos = torch.nn.functional.cosine_similarity(pred, o.u[own], dim=-1)
             assert float(cos.median()) > 0.9, k
+
+
+def test_straight_states_cut_single_demonstrations_of_straight_legs(monkeypatch):
+    """Property (issue 7, "Straight states" of the sampler docstring): a single demonstration of straight legs met
+    at speed (benchmark family straight_const_2d, cases 0 and 5, where the affine-only mode merges legs: 3 and 4
+    steps found of 5) gets every step and every switch within 3 % of its length with the spike-and-slab prior
+    (map, position term, straight_weight=0.5); the mutant with affine fields only (straight_weight=0) must merge
+    on both cases, so the check is the prior, not the case."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "experiments"))
+    from bench_segmentation import data_seed
+
+    from lfd_torch.segmentation.synthetic import FAMILIES
+
+    def found_all(seed, straight_weight):
+        syn = FAMILIES["straight_const_2d"](torch.Generator().manual_seed(data_seed("straight_const_2d", seed)), 1)
+        seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), selection="map",
+                      position_weight=None, straight_weight=straight_weight)  # fmt: skip
+        found = seg.pieces[0][1:, 1].to(torch.float64)
+        true = syn.switch_times[0].to(torch.float64)
+        tol = 0.03 * int(seg.labels[0].shape[0])
+        return len(found) == len(true) and bool(((found - true).abs() <= tol).all()), found.tolist(), true.tolist()
+
+    with_straight = [found_all(seed, 0.5) for seed in (0, 5)]
+    assert all(ok for ok, *_ in with_straight), with_straight
+    affine_only = [found_all(seed, 0.0) for seed in (0, 5)]
+    assert not any(ok for ok, *_ in affine_only), affine_only
