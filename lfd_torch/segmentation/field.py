@@ -241,8 +241,12 @@ def field_log_marginal_likelihood(prior: FieldPrior, counts: Tensor, szz: Tensor
     and the change of variables adds d / 2 sum_t log omega_t, which the caller adds (it does not depend on the
     state). Batch shape (..., K); exactly 0 for empty states.
     """
-    post = field_posterior(prior, counts, szz, suz, suu)
-    d = suu.shape[-1]
+    return _log_evidence(prior, field_posterior(prior, counts, szz, suz, suu), counts)
+
+
+def _log_evidence(prior: FieldPrior, post: FieldPrior, counts: Tensor) -> Tensor:
+    """The evidence formula of :func:`field_log_marginal_likelihood` from the prior and its posterior."""
+    d = prior.scale.shape[-1]
     out = (
         -0.5 * d * math.log(math.pi) * counts
         + 0.5 * d * (_chol_logdet(post.row_covariance) - _chol_logdet(prior.row_covariance))
@@ -260,6 +264,26 @@ def straight_field_prior(prior: FieldPrior) -> FieldPrior:
                       scale=prior.scale)
 
 
+def _straight_posterior(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor
+                        ) -> tuple[FieldPrior, FieldPrior]:
+    """The straight prior and its posterior: the MNIW on the statistics of the offset regressor alone."""
+    straight = straight_field_prior(prior)
+    return straight, field_posterior(straight, counts, szz[..., -1:, -1:], suz[..., -1:], suu)
+
+
+def _mixture(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor, straight_weight: float
+             ) -> tuple[FieldPrior, FieldPrior, Tensor, Tensor]:
+    """Affine and straight posteriors, log p(u | z) and log P(straight | u, z) under the spike-and-slab prior."""
+    post = field_posterior(prior, counts, szz, suz, suu)
+    ev_a = _log_evidence(prior, post, counts)
+    if straight_weight <= 0:
+        return post, None, ev_a, torch.full_like(ev_a, float("-inf"))
+    straight, post_s = _straight_posterior(prior, counts, szz, suz, suu)
+    log_s = math.log(straight_weight) + _log_evidence(straight, post_s, counts)
+    ev = torch.logaddexp(math.log1p(-straight_weight) + ev_a, log_s)
+    return post, post_s, ev, log_s - ev
+
+
 def field_mixture_evidence(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor,
                            straight_weight: float) -> tuple[Tensor, Tensor]:
     """Evidence of a state under the spike-and-slab field prior: straight (slope 0) with probability rho =
@@ -273,13 +297,7 @@ def field_mixture_evidence(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: 
     Returns:
         log p(u | z) and log P(straight | u, z) (-inf when rho = 0).
     """
-    ev_a = field_log_marginal_likelihood(prior, counts, szz, suz, suu)
-    if straight_weight <= 0:
-        return ev_a, torch.full_like(ev_a, float("-inf"))
-    ev_s = field_log_marginal_likelihood(straight_field_prior(prior), counts, szz[..., -1:, -1:], suz[..., -1:], suu)
-    log_s = math.log(straight_weight) + ev_s
-    ev = torch.logaddexp(math.log1p(-straight_weight) + ev_a, log_s)
-    return ev, log_s - ev
+    return _mixture(prior, counts, szz, suz, suu, straight_weight)[2:]
 
 
 def field_mixture_posterior_mean(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor,
@@ -287,15 +305,13 @@ def field_mixture_posterior_mean(prior: FieldPrior, counts: Tensor, szz: Tensor,
     """Posterior means E[B | u, z] (..., K, d, p) and E[Psi | u, z] (..., K, d, d) under the spike-and-slab prior of
     :func:`field_mixture_evidence`: the two posteriors' means weighted by P(straight | u, z) (a straight field's
     slope columns are 0)."""
-    post = field_posterior(prior, counts, szz, suz, suu)
+    post, post_s, _, log_ps = _mixture(prior, counts, szz, suz, suu, straight_weight)
     d = suu.shape[-1]
     psi = post.scale / (post.dof - d - 1.0).clamp_min(1.0)[..., None, None]
-    if straight_weight <= 0:
+    if post_s is None:
         return post.mean, psi
-    _, log_ps = field_mixture_evidence(prior, counts, szz, suz, suu, straight_weight)
-    straight = field_posterior(straight_field_prior(prior), counts, szz[..., -1:, -1:], suz[..., -1:], suu)
-    psi_s = straight.scale / (straight.dof - d - 1.0).clamp_min(1.0)[..., None, None]
-    mean_s = torch.cat([torch.zeros_like(post.mean[..., :-1]), straight.mean], -1)
+    psi_s = post_s.scale / (post_s.dof - d - 1.0).clamp_min(1.0)[..., None, None]
+    mean_s = torch.cat([torch.zeros_like(post.mean[..., :-1]), post_s.mean], -1)
     ps = torch.exp(log_ps)[..., None, None]
     return ps * mean_s + (1 - ps) * post.mean, ps * psi_s + (1 - ps) * psi
 

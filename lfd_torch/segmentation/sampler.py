@@ -361,8 +361,8 @@ class BetaProcessHMMSampler:
             feature_mass=feature_mass, feature_concentration=feature_concentration,
             transition_concentration=transition_concentration, stickiness=stickiness,
             direction_noise=direction_noise, extra_dof=extra_dof, robust_dof=robust_dof,
-            position_weight=position_weight, straight_weight=straight_weight, n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in,
-            n_initial_features=n_initial_features,
+            position_weight=position_weight, straight_weight=straight_weight, n_chains=n_chains,
+            n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
             birth_window=birth_window, birth_prior_mix=birth_prior_mix,
             resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
         )  # fmt: skip
