@@ -198,3 +198,21 @@ def test_attractor_checks_of_the_seed_bench_against_closed_forms():
     seg.attractors = torch.tensor([[0.5, 0.0], [1.0, 0.0]], dtype=torch.float64)
     assert bench.attractor_offsets(seg, [a, a.clone()]) == (0.0, 0.0)
     assert bench.route_coverage(seg, [a, a.clone()]) == 100.0
+
+
+def test_diagnose_segmentation_scores_the_returned_labelling_as_the_sampler_does():
+    """The diagnostic's score of the returned labelling is the collapsed score the sampler reports for it (the map
+    search's objective), and the true labelling of the same grid gets a finite score of its own."""
+    import diagnose_segmentation as diag
+
+    with diag.captured_runs() as runs:
+        pass
+    assert runs == []
+    r = diag.score_gap("straight_const_2d", 0, 1, selection="map", position_weight=None, straight_weight=0.5)
+    syn_seg = diag.segment(
+        diag.FAMILIES["straight_const_2d"](torch.Generator().manual_seed(diag.data_seed("straight_const_2d", 0)), 1).demos,
+        generator=torch.Generator().manual_seed(0), selection="map", position_weight=None, straight_weight=0.5,
+    )
+    assert r["score_found"] == pytest.approx(syn_seg.info["collapsed_log_prob"], abs=0.05)
+    assert math.isfinite(r["score_true"]) and r["true_steps"] == 5
+    assert r["gap"] == pytest.approx(r["score_found"] - r["score_true"], abs=0.11)

@@ -1,0 +1,91 @@
+"""Model or search? The collapsed score of the true steps against the labelling returned (synthetic families).
+
+For every case (a benchmark family of :mod:`lfd_torch.segmentation.synthetic`, the data seed of
+``bench_segmentation.py``), :func:`lfd_torch.segmentation.segment` runs with the given options; then the sampler's
+own collapsed score log p(u, s, F | z) (:meth:`lfd_torch.segmentation.sampler._Run._collapsed_score`, the
+objective of ``selection="map"``) is evaluated for the returned labelling and for the ground truth on the same grid
+(grid point j of demonstration i labelled with the true step of its full-rate sample; true step m is state m,
+owned by every demonstration). A positive gap (found - true) with fewer steps found means the model prefers
+the merge: the search is not to blame. Prints one row per case.
+
+    OMP_NUM_THREADS=1 .venv/bin/python experiments/diagnose_segmentation.py --family curved_dwell_2d --seeds 0 3 5 6 \
+        --segment-option selection=map position_weight=None straight_weight=0.5
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+
+import torch
+
+import lfd_torch.segmentation.sampler as sampler_module
+from lfd_torch.segmentation import segment
+from lfd_torch.segmentation.synthetic import FAMILIES
+from bench_segmentation import data_seed, segment_options
+
+
+@contextlib.contextmanager
+def captured_runs():
+    """The sampler runs made inside the block (their observations and scoring are what the segmentation used)."""
+    runs, original = [], sampler_module._Run.sample
+
+    def sample(self):
+        runs.append(self)
+        return original(self)
+
+    sampler_module._Run.sample = sample
+    try:
+        yield runs
+    finally:
+        sampler_module._Run.sample = original
+
+
+def score_gap(family: str, seed: int, n_demos: int = 1, **options) -> dict:
+    """Steps and collapsed scores of the returned and the true labelling of one case."""
+    syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n_demos)
+    with captured_runs() as runs:
+        seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), **options)
+    run, res = runs[-1], seg.sampler
+    M = int(syn.switch_times.shape[1]) + 1
+    truth = torch.zeros(run.N, run.T, dtype=torch.long)  # true step m is state m in every demonstration
+    for i in range(run.N):
+        grid = torch.tensor(seg.info["grid"][i])
+        steps = (grid.unsqueeze(-1) >= syn.switch_times[i].unsqueeze(0)).sum(-1)  # (n_i,) true step of each point
+        truth[i] = M - 1  # padding repeats the last label
+        truth[i, : grid.numel()] = steps
+    features = torch.ones(run.N, M, dtype=torch.bool)
+    hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
+             for k in ("transition_concentration", "stickiness", "feature_mass")]
+
+    def score(s, f):
+        phases = sampler_module.duration_phases(s[None], run.D)
+        return float(run._collapsed_score(s[None], f[None], phases, *hyper)[0])
+
+    found, true = score(res.states, res.features), score(truth, features)
+    return {"family": family, "seed": seed, "true_steps": M,
+            "found_steps": [len(seg.step_sequence(i)) for i in range(run.N)],
+            "score_found": round(found, 1), "score_true": round(true, 1), "gap": round(found - true, 1)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--family", required=True, choices=list(FAMILIES))
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0])
+    ap.add_argument("--n-demos", type=int, default=1)
+    ap.add_argument("--segment-option", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="segment() keyword arguments, e.g. selection=map position_weight=None")
+    args = ap.parse_args()
+    options = segment_options([o for o in args.segment_option if not o.startswith("selection=")])
+    options.update({"selection": o.split("=", 1)[1] for o in args.segment_option if o.startswith("selection=")})
+    torch.set_num_threads(1)
+    print("| family | seed | true steps | found steps | collapsed score found | true | gap (nats) |")
+    print("|---|---|---|---|---|---|---|")
+    for seed in args.seeds:
+        r = score_gap(args.family, seed, args.n_demos, **options)
+        print(f"| {r['family']} | {r['seed']} | {r['true_steps']} | {r['found_steps']} | {r['score_found']} | "
+              f"{r['score_true']} | {r['gap']} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
