@@ -977,6 +977,51 @@ def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(m
             assert float(cos.median()) > 0.9, k
 
 
+@pytest.mark.parametrize(("position_weight", "straight_weight"), [(0.0, 0.0), (None, 0.0), (None, 0.5)],
+                         ids=["directions", "with_position", "with_straight_states"])
+def test_map_search_batched_scores_equal_the_full_score_one_candidate_at_a_time(monkeypatch, position_weight,
+                                                                                straight_weight):
+    """The mode search's shortcuts (``_Run._climb_to_mode``) against the plain computation: the reassignment
+    scores updated from the current score by the terms a move touches equal ``_collapsed_score`` of every
+    candidate, and the batched Viterbi relabelling of several labellings (the look-ahead and split candidates)
+    equals relabelling them one at a time; on the returned labelling and on each of its splits (more states,
+    other runs)."""
+    syn = synthetic(*MUTATION_CASE)
+    runs = []
+    original = sampler_module._Run.sample
+
+    def capture(self):
+        runs.append(self)
+        return original(self)
+
+    monkeypatch.setattr(sampler_module._Run, "sample", capture)
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="map",
+                  position_weight=position_weight, straight_weight=straight_weight)
+    run, res = runs[-1], seg.sampler
+    hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
+             for k in ("transition_concentration", "stickiness", "feature_mass")]
+
+    def score(s, F):
+        return run._collapsed_score(s, F, sampler_module.duration_phases(s, run.D), *(h.expand(s.shape[0])
+                                                                                     for h in hyper))
+
+    s, F = res.states, res.features
+    splits = run._splits(s, F)
+    assert len(splits) >= 2
+    batch = run._viterbi_relabel_batch(torch.stack([c[0] for c in splits]), torch.stack([c[1] for c in splits]),
+                                       float(hyper[0]), float(hyper[1]))
+    labellings = [(s, F)]
+    for (s2, F2), s_b, F_b in zip(splits, *batch):
+        s1, F1 = run._viterbi_relabel(s2, F2, float(hyper[0]), float(hyper[1]))
+        assert torch.equal(s_b, s1) and torch.equal(F_b, F1)
+        labellings.append(sampler_module._compact_columns(s2, F2))
+    for s_, F_ in labellings:
+        cand = run._reassignments(s_, F_)
+        fast = run._reassignment_scores(s_, F_, *cand, score(s_[None], F_[None])[0], hyper)
+        full = score(cand[0], cand[1])
+        assert torch.allclose(fast, full, rtol=0, atol=1e-8), float((fast - full).abs().max())
+
+
 def test_straight_states_cut_single_demonstrations_of_straight_legs(monkeypatch):
     """Property (issue 7, "Straight states" of the sampler docstring): a single demonstration of straight legs met
     at speed (benchmark family straight_const_2d, cases 0 and 5, where the affine-only mode merges legs: 3 and 4

@@ -931,6 +931,27 @@ class _Run:
         q = w * (r.unsqueeze(-2) @ own_prec @ r.unsqueeze(-1)).reshape(B, n)
         return max(nu + d - 2.0, 1e-3) / (nu + q)
 
+    def _state_terms(self, onehot: Tensor) -> Tensor:
+        """(B, K) the per-state terms of :meth:`_collapsed_score` for the labelling ``onehot`` (B, N T, K) (0 on
+        padding): the Student-t profile terms of each state's samples, its field evidence and its tempered position
+        evidence. Each depends on the samples of its own state alone."""
+        B, n, K = onehot.shape
+        o = self.obs
+        z, u = o.z.reshape(1, n, -1), o.u.reshape(1, n, -1)
+        w = o.w.reshape(1, n).expand(B, n)
+        lp = onehot.new_zeros(B, K)
+        nu = self.cfg.robust_dof
+        if nu is not None:
+            lam = self._profile_scales(z, u, w, onehot)
+            half = 0.5 * nu
+            log_gamma = half * math.log(half) - math.lgamma(half) + (half - 1.0) * torch.log(lam) - half * lam
+            lp = lp + (onehot * (log_gamma + 0.5 * self.d * torch.log(lam)).unsqueeze(-1)).sum(-2)
+            w = w * lam
+        lp = lp + field_mixture_evidence(self.prior, *field_statistics(z, u, w, onehot), self.cfg.straight_weight)[0]
+        if self.tau > 0:
+            lp = lp + niw_log_marginal_likelihood(self.pos_prior, *self._position_statistics(onehot))
+        return lp
+
     def _collapsed_score(self, s: Tensor, F: Tensor, phase: Tensor, alpha: Tensor, kappa: Tensor,
                          mass: Tensor) -> Tensor:
         """(B,) log p(u, s, F | z) with the fields, their noise and the transition weights integrated out.
@@ -1052,13 +1073,17 @@ class _Run:
             relabel: the Viterbi state sequences of every sequence under the posterior means of the fields, noise
                 and transition weights given the current labelling (features it owns but no longer uses dropped);
             reassign: in one sequence, the runs of one state given to another state or to a new one (the best of all
-                such moves, scored in one batched call): the partial merges and splits of state sharing;
+                such moves, scored in one batched call as the current score plus the change of the terms the move
+                touches, :meth:`_reassignment_scores`, then confirmed by the full score): the partial merges and
+                splits of state sharing;
             split (only when none of the above raises the score): one state's runs cut in halves, the second halves
                 a new state, then a relabelling; states tried most used first, the first that raises the score
                 kept. It is the split of split-merge samplers taken greedily: without it a chain that had carried
                 two consecutive steps by one state could not separate them (LASA Multi_Models_3 with the position
                 term: 6 steps on route {0-3} on 5 of 10 seeds without it, at commit 2f6f509, and 9 with it).
-        The fields returned with it are those posterior means; the joint log probability of a polished sample is
+        The look-ahead and split candidates are relabelled and scored as one batch each, then taken in order (the
+        first that raises the score), which gives the same ascent as one at a time. The fields returned with it are
+        those posterior means; the joint log probability of a polished sample is
         not defined (no sampled parameters): nan.
         """
         s, F = snap["states"], snap["features"]
@@ -1093,24 +1118,31 @@ class _Run:
                 b = int(torch.argmax(sc))
                 if bool(sc[b] > score):
                     s, F, score, moved = cand_s[b], cand_f[b], sc[b], True
-                else:  # look one move further: the best merges, each followed by a relabelling
-                    for b in torch.argsort(sc, descending=True)[:_LOOKAHEAD].tolist():
-                        s2, F2 = self._viterbi_relabel(cand_s[b], cand_f[b], float(hyper[0]), float(hyper[1]))
-                        sc2 = score_of(s2[None], F2[None])[0]
+                else:  # look one move further: the best merges, each followed by a relabelling (the first that
+                    # raises the score, in the order of the merge scores; relabelled and scored as one batch)
+                    top = torch.argsort(sc, descending=True)[:_LOOKAHEAD]
+                    relabelled = self._viterbi_relabel_batch(cand_s[top], cand_f[top], float(hyper[0]),
+                                                             float(hyper[1]))
+                    for s2, F2, sc2 in zip(*relabelled, self._scores_by_width(relabelled, score_of)):
                         if bool(sc2 > score):
                             s, F, score, moved = s2, F2, sc2, True
                             break
             cand = self._reassignments(s, F)
             if cand is not None:
-                sc = score_of(*cand)
+                sc = self._reassignment_scores(s, F, *cand, score, hyper)
                 b = int(torch.argmax(sc))
-                if bool(sc[b] > score):
-                    s, F = _compact_columns(cand[0][b], cand[1][b])
-                    score, moved = sc[b], True
-            if not moved:  # last resort: split one state, its runs cut in two halves, then relabel
-                for s2, F2 in self._splits(s, F):
-                    s2, F2 = self._viterbi_relabel(s2, F2, float(hyper[0]), float(hyper[1]))
+                if bool(sc[b] > score):  # confirmed by the full score, so every kept score is one
+                    s2, F2 = _compact_columns(cand[0][b], cand[1][b])
                     sc2 = score_of(s2[None], F2[None])[0]
+                    if bool(sc2 > score):
+                        s, F, score, moved = s2, F2, sc2, True
+            splits = self._splits(s, F) if not moved else []
+            if splits:  # last resort: split one state, its runs cut in two halves, then relabel (the first of
+                # them, most used state first, that raises the score; relabelled and scored as one batch)
+                relabelled = self._viterbi_relabel_batch(torch.stack([c[0] for c in splits]),
+                                                         torch.stack([c[1] for c in splits]), float(hyper[0]),
+                                                         float(hyper[1]))
+                for s2, F2, sc2 in zip(*relabelled, self._scores_by_width(relabelled, score_of)):
                     if bool(sc2 > score):
                         s, F, score, moved = s2, F2, sc2, True
                         break
@@ -1145,10 +1177,10 @@ class _Run:
             out.append((s2, torch.cat([F, F[:, k : k + 1]], 1)))
         return out
 
-    def _reassignments(self, s: Tensor, F: Tensor) -> tuple[Tensor, Tensor] | None:
+    def _reassignments(self, s: Tensor, F: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None:
         """The reassign move of :meth:`_climb_to_mode`: every (sequence i, state k it uses, state j != k or a new
-        one) with the runs of k in sequence i relabelled j; (P, N, T) labels and (P, N, K + 1) features (the last
-        column is the new state's)."""
+        one) with the runs of k in sequence i relabelled j; (P, N, T) labels, (P, N, K + 1) features (the last
+        column is the new state's) and the moves' (P,) i, k, j."""
         N, K = F.shape
         used = (torch.nn.functional.one_hot(s, K).to(torch.bool) & self.valid.unsqueeze(-1)).any(1)  # (N, K)
         i, k, j = torch.nonzero(used.unsqueeze(-1).expand(N, K, K + 1), as_tuple=True)
@@ -1164,7 +1196,37 @@ class _Run:
         cand_f = torch.cat([F, torch.zeros(N, 1, dtype=F.dtype, device=F.device)], 1).unsqueeze(0).repeat(P, 1, 1)
         cand_f[p, i, k] = False
         cand_f[p, i, j] = True
-        return cand_s, cand_f
+        return cand_s, cand_f, i, k, j
+
+    def _reassignment_scores(self, s: Tensor, F: Tensor, cand_s: Tensor, cand_f: Tensor, i: Tensor, k: Tensor,
+                             j: Tensor, score: Tensor, hyper: list[Tensor]) -> Tensor:
+        """(P,) collapsed scores of the reassignment candidates of :meth:`_reassignments`, as the current
+        ``score`` of (s, F) plus the change of the terms a move touches: the per-state terms
+        (:meth:`_state_terms`) of states k and j, the transitions and initial state of sequence i, and the IBP
+        prior. Equal to :meth:`_collapsed_score` of the candidates up to rounding; it only evaluates the two
+        states' samples instead of all K states' for every candidate."""
+        N, T, K = self.N, self.T, F.shape[-1]
+        P = i.numel()
+        valid = self.valid.reshape(-1)
+        flat = s.reshape(-1)
+        onehot = torch.nn.functional.one_hot(flat, K).to(self.dtype) * valid.to(self.dtype).unsqueeze(-1)
+        base = torch.cat([self._state_terms(onehot.unsqueeze(0))[0], onehot.new_zeros(1)])  # (K + 1,), new: 0
+        in_i = torch.arange(N, device=self.device).repeat_interleave(T).unsqueeze(0) == i.unsqueeze(-1)  # (P, N T)
+        old_k = (flat.unsqueeze(0) == k.unsqueeze(-1)) & valid
+        new_j = ((flat.unsqueeze(0) == j.unsqueeze(-1)) & valid) | (old_k & in_i)
+        pair = torch.stack([old_k & ~in_i, new_j], -1).to(self.dtype)  # (P, N T, 2): states k and j after the move
+        lp = score + self._state_terms(pair).sum(-1) - base[k] - base[j]
+        alpha, kappa = (h.view(1, 1, 1, 1) for h in hyper[:2])
+        rows = torch.cat([cand_s[torch.arange(P, device=self.device), i], s[i]]).unsqueeze(1)  # (2P, 1, T)
+        f_rows = torch.cat([cand_f[torch.arange(P, device=self.device), i],
+                            torch.nn.functional.pad(F[i], (0, 1))]).unsqueeze(1)  # (2P, 1, K + 1)
+        counts = transition_counts(rows, self.lengths[i].repeat(2).unsqueeze(1), K + 1,
+                                   free_transitions(duration_phases(rows, self.D), self.D)).to(self.dtype)
+        trans = dirichlet_multinomial_log_prob(counts, f_rows, alpha, kappa).sum(-1)  # (2P,)
+        init = -torch.log(f_rows.sum(-1).clamp_min(1).to(self.dtype)).sum(-1)
+        lp = lp + (trans[:P] - trans[P:]) + (init[:P] - init[P:])
+        ibp = ibp_log_prior(cand_f, hyper[2].expand(P), self.cfg.feature_concentration).to(self.dtype)
+        return lp + ibp - ibp_log_prior(F, hyper[2], self.cfg.feature_concentration).to(self.dtype)
 
     def _viterbi_relabel(self, s: Tensor, F: Tensor, alpha: float, kappa: float) -> tuple[Tensor, Tensor]:
         """The relabel move of :meth:`_climb_to_mode`: (N, T) Viterbi labels and (N, K) features, unused slots of
@@ -1188,6 +1250,52 @@ class _Run:
         used = torch.nn.functional.one_hot(s_new, K).to(torch.bool)
         used = (used & self.valid.unsqueeze(-1)).any(1)  # (N, K)
         return _compact_columns(s_new, used)
+
+    def _viterbi_relabel_batch(self, s: Tensor, F: Tensor, alpha: float, kappa: float
+                               ) -> tuple[list[Tensor], list[Tensor]]:
+        """:meth:`_viterbi_relabel` of B labellings s (B, N, T) with features F (B, N, K) in one batch: the
+        relabelled (N, T) labels and (N, K_b) features of each (K_b may differ between them)."""
+        B, K, D = s.shape[0], F.shape[-1], self.D
+        N, T = self.N, self.T
+        o = self.obs
+        valid = self.valid.to(self.dtype).unsqueeze(-1)
+        onehot = (torch.nn.functional.one_hot(s, K).to(self.dtype) * valid).reshape(B, N * T, K)
+        z, u, w = o.z.reshape(1, N * T, -1), o.u.reshape(1, N * T, -1), o.w.reshape(1, N * T).expand(B, N * T)
+        if self.cfg.robust_dof is not None:
+            w = w * self._profile_scales(z, u, w, onehot)
+        field, noise = field_mixture_posterior_mean(self.prior, *field_statistics(z, u, w, onehot),
+                                                    self.cfg.straight_weight)  # (B, K, d, p), (B, K, d, d)
+        le = field_log_likelihood(o.z, o.u, o.w, field[:, None], noise[:, None], self.cfg.robust_dof)  # (B, N, T, K)
+        if self.tau > 0:
+            post = niw_posterior(self.pos_prior, *self._position_statistics(onehot))
+            cov = post.scale / (post.dof - self.d - 1.0)[..., None, None]
+            le = le + self.tau * gaussian_log_density(self.pos, post.mean[:, None], cov[:, None])
+        lengths = self.lengths.expand(B, N)
+        counts = transition_counts(s, lengths, K, free_transitions(duration_phases(s, D), D)).to(self.dtype)
+        f = F.to(self.dtype)
+        owned = f.unsqueeze(-1) * f.unsqueeze(-2)  # (B, N, K, K)
+        prior = alpha + kappa * torch.eye(K, dtype=self.dtype, device=self.device)
+        pi = (prior + counts) * owned
+        pi = pi / pi.sum(-1, keepdim=True).clamp_min(torch.finfo(self.dtype).tiny)
+        le = le.masked_fill(~F.unsqueeze(2), _NEG_INF).repeat_interleave(D, -1)
+        le = self._complete_last_run(le.flatten(0, 1), lengths.reshape(-1))
+        init, P = expand_min_duration(initial_distribution(F, self.dtype), pi, D)
+        s_new = (viterbi(le, init.flatten(0, 1), P.flatten(0, 1), lengths.reshape(-1)) // D).unflatten(0, (B, N))
+        used = (torch.nn.functional.one_hot(s_new, K).to(torch.bool) & self.valid.unsqueeze(-1)).any(2)  # (B, N, K)
+        out = [_compact_columns(s_new[b], used[b]) for b in range(B)]
+        return [o_[0] for o_ in out], [o_[1] for o_ in out]
+
+    @staticmethod
+    def _scores_by_width(labellings: tuple[list[Tensor], list[Tensor]], score_of) -> list[Tensor]:
+        """Scores of labellings with different numbers of states, batched per number of states."""
+        states, features = labellings
+        out: list[Tensor | None] = [None] * len(states)
+        for K in sorted({f.shape[-1] for f in features}):
+            idx = [b for b, f in enumerate(features) if f.shape[-1] == K]
+            sc = score_of(torch.stack([states[b] for b in idx]), torch.stack([features[b] for b in idx]))
+            for b, v in zip(idx, sc):
+                out[b] = v
+        return out
 
     def _posterior_mean_fields(self, s: Tensor, K: int) -> tuple[Tensor, Tensor]:
         """(K, d, p) posterior-mean fields and (K, d, d) noise of a labelling s (N, T), as in
