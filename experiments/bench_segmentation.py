@@ -179,13 +179,15 @@ def detect_segment(syn: SyntheticSteps, seed: int, selection: str = "joint",
 
 
 def segment_options(pairs: list[str]) -> dict[str, Any]:
-    """``["extra_dof=2", "robust_dof=None"]`` -> {"extra_dof": 2.0, "robust_dof": None} (ints stay ints)."""
+    """``["extra_dof=2", "robust_dof=None", "dwell_cue=True"]`` -> {"extra_dof": 2.0, "robust_dof": None,
+    "dwell_cue": True} (ints stay ints)."""
     out: dict[str, Any] = {}
     for pair in pairs:
         key, sep, value = pair.partition("=")
         if not sep:
             raise SystemExit(f"--segment-option expects KEY=VALUE, got {pair!r}")
-        out[key] = None if value == "None" else int(value) if value.lstrip("-").isdigit() else float(value)
+        out[key] = (None if value == "None" else value == "True" if value in ("True", "False")
+                    else int(value) if value.lstrip("-").isdigit() else float(value))
     return out
 
 

@@ -181,6 +181,15 @@ from lfd_torch.segmentation.field import (
     field_statistics,
     sample_field,
 )
+from lfd_torch.segmentation.dwell import (
+    dwell_evidence,
+    dwell_log_likelihood,
+    dwell_log_prob,
+    dwell_mask,
+    dwell_posterior,
+    dwell_prior,
+    posterior_summary,
+)
 from lfd_torch.segmentation.features import ibp_log_prior, shared_log_odds, unique_feature_rate
 from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood, viterbi
 from lfd_torch.segmentation.transitions import (
@@ -389,7 +398,7 @@ class BetaProcessHMMSampler:
     def run(
         self, sequences: list[Tensor], velocities: list[Tensor], generator: torch.Generator,
         prior: FieldPrior | None = None, min_duration: int = 1, velocity_noise: Tensor | float = 0.0,
-        speed_floor: float = 0.0,
+        speed_floor: float = 0.0, dwell: list[Tensor] | None = None,
     ) -> SamplerResult:
         """Sample the BP-GM-HMM posterior of a set of sequences.
 
@@ -401,6 +410,8 @@ class BetaProcessHMMSampler:
             velocity_noise, speed_floor: of :func:`~lfd_torch.segmentation.field.field_observations`.
             min_duration: D, shortest run of a state in samples of the given grid
                 (:func:`~lfd_torch.segmentation.transitions.expand_min_duration`).
+            dwell: N tensors (T_i,), the dwell covariate c of every grid point (:mod:`.dwell`); given, the model
+                also explains it (module docstring, "Dwell"; needs D >= 2). None: directions alone.
 
         Returns:
             SamplerResult of the best sample.
@@ -409,7 +420,16 @@ class BetaProcessHMMSampler:
         v, lengths_v = _pad(velocities)
         if v.shape != x.shape or not torch.equal(lengths, lengths_v):
             raise ShapeMismatchError("velocities must have the shapes of the sequences")
-        run = _Run(self, x, v, lengths, generator, prior, min_duration, (velocity_noise, speed_floor))
+        c = None
+        if dwell is not None:
+            if len(dwell) != len(sequences) or any(ci.shape != (si.shape[0],) for ci, si in zip(dwell, sequences)):
+                raise ShapeMismatchError("dwell must hold one (T_i,) tensor per sequence")
+            c = x.new_zeros(x.shape[:2])
+            for i, ci in enumerate(dwell):
+                if not bool(torch.isfinite(ci).all()):
+                    raise NonFiniteError("dwell contains NaN or Inf", i)
+                c[i, : ci.shape[0]] = ci
+        run = _Run(self, x, v, lengths, generator, prior, min_duration, (velocity_noise, speed_floor), c)
         return run.sample()
 
 
@@ -452,7 +472,7 @@ class _Run:
 
     def __init__(
         self, cfg: BetaProcessHMMSampler, x: Tensor, v: Tensor, lengths: Tensor, generator: torch.Generator,
-        prior: FieldPrior | None, min_duration: int, noise: tuple[Tensor | float, float],
+        prior: FieldPrior | None, min_duration: int, noise: tuple[Tensor | float, float], dwell: Tensor | None = None,
     ) -> None:
         self.cfg = cfg
         self.gen = generator
@@ -480,6 +500,17 @@ class _Run:
         self.pos = self.obs.z[..., : self.d]  # (N, T, d) standardised positions
         self.pos_prior = niw_prior_from_data(self.pos[self.valid], covariance_scale=_POSITION_SCALE)
         self.loc = self.spread = None  # (C, K, d), (C, K, d, d) position Gaussians when tau > 0
+        # dwell term (module docstring, "Dwell"): c (N, T), its mask, and every chain's (mu, delta), sigma^2
+        self.dwell = dwell
+        self.dwell_ll = None  # (C, N, T, 2) log N(c_t; mu + delta b, sigma^2), b = 0, 1
+        if dwell is not None:
+            self.dwell_mask = dwell_mask(lengths, self.T, self.D)
+            self.dwell_prior = dwell_prior(self.dtype, self.device)
+            seen = dwell[self.dwell_mask]
+            # a neutral start (delta = 0: no dwell effect until the states say otherwise)
+            self.dwell_beta = torch.stack([seen.mean(), torch.zeros_like(seen[0])]).expand(self.C, 2).clone()
+            self.dwell_noise = seen.var().clamp_min(1e-6).expand(self.C).clone()
+            self.dwell_ll = dwell_log_likelihood(dwell, self.dwell_mask, self.dwell_beta, self.dwell_noise)
         self._initialise()
 
     # ------------------------------------------------------------------ helpers
@@ -521,13 +552,36 @@ class _Run:
         """Tempered NIW statistics (tau n, tau sum x, tau sum x x^T) of the positions per state; onehot (B, N T, K)."""
         return sufficient_statistics(self._chain_view(self.pos, 3).flatten(1, 2), onehot * self.tau)
 
-    def _marginal(self, features: Tensor, weights: Tensor, log_emission: Tensor, lengths: Tensor) -> Tensor:
-        """log p(x | f, eta, theta), states summed out. features (B, K), weights (B, K, K), log_emission (B, T, K)."""
+    def _marginal(self, features: Tensor, weights: Tensor, log_emission: Tensor, lengths: Tensor,
+                  dwell_ll: Tensor | None = None) -> Tensor:
+        """log p(x | f, eta, theta), states summed out. features (B, K), weights (B, K, K), log_emission (B, T, K),
+        dwell_ll (B, T, 2) or None (:meth:`_expand`)."""
         D = self.D
-        le = self._complete_last_run(log_emission.masked_fill(~features.unsqueeze(1), _NEG_INF).repeat_interleave(D, -1), lengths)
+        le = self._expand(log_emission, features, lengths, dwell_ll)
         init, P = expand_min_duration(initial_distribution(features, self.dtype), transition_matrix(weights, features), D)
         ll = forward_log_likelihood(le, init, P, lengths)
         return torch.where(features.any(-1), ll, torch.full_like(ll, _NEG_INF))
+
+    def _expand(self, log_emission: Tensor, features: Tensor, lengths: Tensor, dwell_ll: Tensor | None) -> Tensor:
+        """(B, T, K D) log emissions of the phase-expanded states from those of the states (B, T, K): slots not in
+        the features (B, K) get -inf; with the dwell term, phase 0 (a run's first point) adds dwell_ll[..., 1] and
+        the other phases dwell_ll[..., 0] (module docstring, "Dwell"); the last run is completed."""
+        D = self.D
+        le = log_emission.masked_fill(~features.unsqueeze(-2), _NEG_INF).repeat_interleave(D, -1)
+        if dwell_ll is not None:
+            first = (torch.arange(le.shape[-1], device=self.device) % D) == 0
+            le = le + torch.where(first, dwell_ll[..., 1:2], dwell_ll[..., 0:1])
+        return self._complete_last_run(le, lengths)
+
+    def _flat_dwell(self, *expand: int) -> Tensor | None:
+        """The chains' dwell terms (C, N, T, 2) with the rows flattened as the callers' batches: (C N [x expand],
+        T, 2), or None without the dwell term."""
+        if self.dwell_ll is None:
+            return None
+        ll = self.dwell_ll
+        for e in expand:
+            ll = ll.unsqueeze(2).expand(*ll.shape[:2], e, *ll.shape[2:]).flatten(1, 2)
+        return ll.flatten(0, 1)
 
     def _complete_last_run(self, log_emission: Tensor, lengths: Tensor) -> Tensor:
         """Forbid ending inside the forced phases: the last run of a sequence lasts at least D samples too.
@@ -547,7 +601,7 @@ class _Run:
         C, N, K = self.F.shape
         ll = self._marginal(
             self.F.reshape(C * N, K), self.eta.reshape(C * N, K, K), self.loge.reshape(C * N, self.T, K),
-            self.lengths.repeat(C),
+            self.lengths.repeat(C), self._flat_dwell(),
         )  # fmt: skip
         return ll.reshape(C, N)
 
@@ -660,6 +714,7 @@ class _Run:
                 self.eta.unsqueeze(2).expand(C, N, n_sub - 1, K, K).reshape(-1, K, K),
                 self.loge.unsqueeze(2).expand(C, N, n_sub - 1, self.T, K).reshape(-1, self.T, K),
                 self.lengths.view(1, N, 1).expand(C, N, n_sub - 1).reshape(-1),
+                self._flat_dwell(n_sub - 1),
             ).reshape(C, N, n_sub - 1)
             table = torch.cat([self.ll.unsqueeze(-1), ll_var], -1)  # (C, N, n_sub): index = subset bit mask
             state = torch.zeros(C, N, dtype=torch.long, device=self.device)
@@ -799,7 +854,8 @@ class _Run:
         le_new = self.loge.clone()
         le_new.scatter_(-1, slot_b.view(C, N, 1, 1).expand(C, N, self.T, 1), le_b)
         ll_new = self._marginal(
-            f_new.reshape(C * N, K), self.eta.reshape(C * N, K, K), le_new.reshape(C * N, self.T, K), self.lengths.repeat(C)
+            f_new.reshape(C * N, K), self.eta.reshape(C * N, K, K), le_new.reshape(C * N, self.T, K), self.lengths.repeat(C),
+            self._flat_dwell(),
         ).reshape(C, N)
         log_a = ll_new - self.ll + torch.where(birth, log_extra, -log_extra)
         ok = active & (torch.log(self._rand(C, N)) < log_a)
@@ -826,8 +882,7 @@ class _Run:
         f = self.F.reshape(C * N, K)
         D = self.D
         lengths = self.lengths.repeat(C)
-        le = self.loge.reshape(C * N, self.T, K).masked_fill(~f.unsqueeze(1), _NEG_INF).repeat_interleave(D, -1)
-        le = self._complete_last_run(le, lengths)
+        le = self._expand(self.loge.reshape(C * N, self.T, K), f, lengths, self._flat_dwell())
         init, P = expand_min_duration(initial_distribution(f, self.dtype), transition_matrix(self.eta.reshape(C * N, K, K), f), D)
         lengths = self.lengths.repeat(C)
         filtered, _ = forward_filter(le, init, P, lengths)
@@ -857,6 +912,11 @@ class _Run:
         self.eta = sample_transition_weights_posterior(
             trans, self.F, self.alpha.view(C, 1, 1, 1), self.kappa.view(C, 1, 1, 1), self.gen
         )
+        if self.dwell is not None:  # (mu, delta, sigma^2) | phases: the NIG posterior (module docstring, "Dwell")
+            beta, noise = sample_field(dwell_posterior(self.dwell_prior, self.dwell, self.dwell_mask, self.phase),
+                                       self.gen)  # (C, 1, 1, 2), (C, 1, 1, 1)
+            self.dwell_beta, self.dwell_noise = beta.reshape(C, 2), noise.reshape(C)
+            self.dwell_ll = dwell_log_likelihood(self.dwell, self.dwell_mask, self.dwell_beta, self.dwell_noise)
         self.loge = self._emission(self.field, self.noise, self.loc, self.spread)
         self.ll = self._marginal_all()
 
@@ -908,6 +968,9 @@ class _Run:
         lp = lp + (field_log_density(self.field, self.noise, self.prior) * owned).sum(-1)
         if self.tau > 0:
             lp = lp + (niw_log_density(self.loc, self.spread, self.pos_prior) * owned).sum(-1)
+        if self.dwell is not None:
+            lp = lp + dwell_log_prob(self.dwell_prior, self.dwell, self.dwell_mask, self.phase, self.dwell_beta,
+                                     self.dwell_noise)
         for c in range(C):
             lp[c] = lp[c] + ibp_log_prior(f[c], self.mass[c], self.cfg.feature_concentration).to(self.dtype)
             lp[c] = lp[c] + dirichlet_log_density_rows(P[c], f[c], float(self.alpha[c]), float(self.kappa[c])).sum()
@@ -986,6 +1049,8 @@ class _Run:
                                          self.cfg.straight_weight)[0].sum(-1)
         if self.tau > 0:  # the tempered NIW evidence of each state's positions
             lp = lp + niw_log_marginal_likelihood(self.pos_prior, *self._position_statistics(onehot)).sum(-1)
+        if self.dwell is not None:
+            lp = lp + dwell_evidence(self.dwell_prior, self.dwell, self.dwell_mask, phase)
         counts = transition_counts(s, self.lengths.expand(B, N), K, free_transitions(phase, self.D)).to(self.dtype)
         lp = lp + dirichlet_multinomial_log_prob(counts, F, alpha.view(B, 1, 1, 1), kappa.view(B, 1, 1, 1)).sum(-1)
         lp = lp - torch.log(F.sum(-1).clamp_min(1).to(self.dtype)).sum(-1)  # uniform initial state
@@ -1058,7 +1123,7 @@ class _Run:
             trace=trace,
             n_features_trace=n_feat,
             chain=c_best,
-            hyperparameters=snap["hyper"],
+            hyperparameters={**snap["hyper"], **self.dwell_summary(snap["states"])},
             acceptance=acceptance,
         )
 
@@ -1225,6 +1290,10 @@ class _Run:
         trans = dirichlet_multinomial_log_prob(counts, f_rows, alpha, kappa).sum(-1)  # (2P,)
         init = -torch.log(f_rows.sum(-1).clamp_min(1).to(self.dtype)).sum(-1)
         lp = lp + (trans[:P] - trans[P:]) + (init[:P] - init[P:])
+        if self.dwell is not None:  # the dwell evidence depends on where runs start in every sequence
+            ev = dwell_evidence(self.dwell_prior, self.dwell, self.dwell_mask,
+                                duration_phases(torch.cat([cand_s, s[None]]), self.D))
+            lp = lp + ev[:P] - ev[P:]
         ibp = ibp_log_prior(cand_f, hyper[2].expand(P), self.cfg.feature_concentration).to(self.dtype)
         return lp + ibp - ibp_log_prior(F, hyper[2], self.cfg.feature_concentration).to(self.dtype)
 
@@ -1243,8 +1312,8 @@ class _Run:
         prior = alpha + kappa * torch.eye(K, dtype=self.dtype, device=self.device)
         pi = (prior + counts) * owned  # posterior mean of the sticky Dirichlet rows, up to normalisation
         pi = pi / pi.sum(-1, keepdim=True).clamp_min(torch.finfo(self.dtype).tiny)
-        le = le.masked_fill(~F.unsqueeze(1), _NEG_INF).repeat_interleave(D, -1)
-        le = self._complete_last_run(le, self.lengths)
+        dwell_ll = self._posterior_mean_dwell(s[None])
+        le = self._expand(le, F, self.lengths, None if dwell_ll is None else dwell_ll[0])
         init, P = expand_min_duration(initial_distribution(F, self.dtype), pi, D)
         s_new = viterbi(le, init, P, self.lengths) // D
         used = torch.nn.functional.one_hot(s_new, K).to(torch.bool)
@@ -1277,8 +1346,9 @@ class _Run:
         prior = alpha + kappa * torch.eye(K, dtype=self.dtype, device=self.device)
         pi = (prior + counts) * owned
         pi = pi / pi.sum(-1, keepdim=True).clamp_min(torch.finfo(self.dtype).tiny)
-        le = le.masked_fill(~F.unsqueeze(2), _NEG_INF).repeat_interleave(D, -1)
-        le = self._complete_last_run(le.flatten(0, 1), lengths.reshape(-1))
+        dwell_ll = self._posterior_mean_dwell(s)
+        le = self._expand(le.flatten(0, 1), F.flatten(0, 1), lengths.reshape(-1),
+                          None if dwell_ll is None else dwell_ll.flatten(0, 1))
         init, P = expand_min_duration(initial_distribution(F, self.dtype), pi, D)
         s_new = (viterbi(le, init.flatten(0, 1), P.flatten(0, 1), lengths.reshape(-1)) // D).unflatten(0, (B, N))
         used = (torch.nn.functional.one_hot(s_new, K).to(torch.bool) & self.valid.unsqueeze(-1)).any(2)  # (B, N, K)
@@ -1310,6 +1380,22 @@ class _Run:
         mean, psi = field_mixture_posterior_mean(self.prior, *field_statistics(z, u, w, onehot),
                                                  self.cfg.straight_weight)
         return mean[0], psi[0]
+
+    def _posterior_mean_dwell(self, s: Tensor) -> Tensor | None:
+        """(B, N, T, 2) dwell terms under the posterior means of (mu, delta) and sigma^2 given the labellings s
+        (B, N, T) (as the fields in :meth:`_posterior_mean_fields`); None without the dwell term."""
+        if self.dwell is None:
+            return None
+        post = dwell_posterior(self.dwell_prior, self.dwell, self.dwell_mask, duration_phases(s, self.D))
+        noise = post.scale.reshape(-1) / (post.dof.reshape(-1) - 2.0)
+        return dwell_log_likelihood(self.dwell, self.dwell_mask, post.mean.reshape(-1, 2), noise)
+
+    def dwell_summary(self, s: Tensor) -> dict[str, float]:
+        """Posterior means of mu, delta and sigma of the dwell term given one labelling s (N, T); {} without it."""
+        if self.dwell is None:
+            return {}
+        return posterior_summary(dwell_posterior(self.dwell_prior, self.dwell, self.dwell_mask,
+                                                 duration_phases(s[None], self.D)))
 
     def _posterior_mean_positions(self, s: Tensor, K: int) -> tuple[Tensor, Tensor]:
         """(K, d) posterior means and (K, d, d) posterior-mean covariances of the position Gaussians of a labelling

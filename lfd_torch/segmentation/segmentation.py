@@ -148,6 +148,7 @@ from lfd_torch.errors import (
     TooFewSamplesError,
 )
 from lfd_torch.gmm import GaussianBank, gaussian_log_density
+from lfd_torch.segmentation.dwell import dwell_covariate
 from lfd_torch.segmentation.field import field_log_likelihood_additive, field_observations
 from lfd_torch.segmentation.sampler import BetaProcessHMMSampler, SamplerResult
 
@@ -626,8 +627,11 @@ def _align_route(seqs: list[list[int]], fracs: list[list[float]]) -> tuple[list[
     return steps, [[index[sid] for sid in assign[i]] for i in range(len(seqs))]
 
 
-def _refine_switch(ll: Tensor, a: int, b: int, lo: int, hi: int, stride: int) -> tuple[int, Tensor]:
+def _refine_switch(ll: Tensor, a: int, b: int, lo: int, hi: int, stride: int,
+                   log_prior: Tensor | None = None) -> tuple[int, Tensor]:
     """Median of the change-point posterior between states a | b on t in [lo, hi] (module docstring, item 3).
+
+    ``log_prior`` (T,): a log weight of every full-rate switch time (the dwell term's, :mod:`.dwell`), or None.
 
     Returns:
         the switch (first sample of b) and the posterior probability that sample t, lo <= t < hi, is on the other
@@ -637,6 +641,8 @@ def _refine_switch(ll: Tensor, a: int, b: int, lo: int, hi: int, stride: int) ->
     diff = (seg[:, a] - seg[:, b]) / stride  # evidence for a over b of every full-rate sample
     # score(t) = sum_{t' < t} diff(t') (+ const): samples before t with a, from t on with b
     score = torch.cat([diff.new_zeros(1), diff.cumsum(0)])  # t = lo .. hi
+    if log_prior is not None:
+        score = score + log_prior[lo : hi + 1]
     post = torch.softmax(score, 0)
     cdf = post.cumsum(0)  # cdf[j] = P(tau <= lo + j)
     half = post.new_tensor([0.5])
@@ -645,6 +651,16 @@ def _refine_switch(ll: Tensor, a: int, b: int, lo: int, hi: int, stride: int) ->
     j = torch.arange(hi - lo, device=ll.device)
     doubt = torch.where(j < cut, in_b, 1.0 - in_b).clamp(0.0, 1.0)
     return lo + cut, doubt
+
+
+def _dwell_switch_prior(c: Tensor, grid: Tensor, T: int, params: dict[str, float]) -> Tensor:
+    """(T + 1,) log weight of a switch at every full-rate sample tau under the dwell term (:mod:`.dwell`): a switch
+    at tau makes a run start at the first grid point at or after tau, j, and the term's log ratio there is
+    log N(c_j; mu + delta, sigma^2) - log N(c_j; mu, sigma^2) (posterior means given the returned labelling)."""
+    mu, delta, var = params["dwell_mean"], params["dwell_shift"], params["dwell_noise"] ** 2
+    ratio = (delta * (c - mu) - 0.5 * delta**2) / var  # (n,)
+    j = torch.searchsorted(grid, torch.arange(T + 1, device=grid.device)).clamp(1, grid.numel() - 1)
+    return ratio[j]
 
 
 def _subtask_spaces(
@@ -789,6 +805,7 @@ def segment(
     robust_dof: float | None = 4.0,
     position_weight: float | None = 0.0,
     straight_weight: float = 0.0,
+    dwell_cue: bool = False,
     feature_mass: float = 2.0,
     feature_concentration: float = 1.0,
     transition_concentration: float = 1.0,
@@ -823,6 +840,9 @@ def segment(
             minimum duration in grid samples); 0 (default): directions alone (:mod:`.sampler`, "Position").
         straight_weight: prior probability that a state's field is straight (slope 0) in the collapsed score, in
             [0, 1); it acts through ``selection="map"`` (:mod:`.sampler`, "Straight states"); 0 (default): affine.
+        dwell_cue: the model also explains the time spent between grid points, with a learned shift at the first
+            point of a run (:mod:`.dwell`): a pause marks a step boundary as far as the data show it. Needs a
+            minimum duration of at least 2 grid points.
         Remaining keyword arguments: see :class:`BetaProcessHMMSampler`; their accepted ranges (upper bounds where
             a hyperparameter scales the cost, with the measured cost) are
             :data:`~lfd_torch.segmentation.sampler.HYPERPARAMETER_RANGES`.
@@ -843,6 +863,8 @@ def segment(
     integral = isinstance(max_samples, numbers.Integral) and not isinstance(max_samples, bool)
     if not (integral and 8 <= max_samples <= MAX_GRID):
         raise InvalidArgumentError(f"max_samples must be an integer in [8, {MAX_GRID}], got {max_samples!r}")
+    if not isinstance(dwell_cue, bool):
+        raise InvalidArgumentError(f"dwell_cue must be a bool, got {dwell_cue!r}")
     sampler = BetaProcessHMMSampler(
         feature_mass=feature_mass, feature_concentration=feature_concentration,
         transition_concentration=transition_concentration, stickiness=stickiness,
@@ -880,11 +902,19 @@ def segment(
     n_max = max(x.shape[0] for x in xs)
     sigma_v_t = torch.stack([torch.cat([sv[g], sv[g][-1:].expand(n_max - g.shape[0])])
                              for sv, g in zip(sigma_v_full, grid)])  # (N, T) on the grid, padded
+    dwell = None
+    if dwell_cue:
+        if duration < 2:
+            raise InvalidArgumentError(f"dwell_cue needs a minimum duration of at least 2 grid points, got {duration} "
+                                       "(raise min_length or max_samples)")
+        dwell = [dwell_covariate(t, g) for t, g in zip(times, grid)]
     try:
-        result = sampler.run(xs, vs, generator, min_duration=duration, velocity_noise=sigma_v_t, speed_floor=s_floor)
+        result = sampler.run(xs, vs, generator, min_duration=duration, velocity_noise=sigma_v_t, speed_floor=s_floor,
+                             dwell=dwell)
     except torch.linalg.LinAlgError as exc:  # a degenerate field posterior (e.g. data without any spread)
         raise SolverError(f"the BP-GM-HMM sampler failed on these demonstrations: {exc}") from exc
     t1 = time.perf_counter()
+    info_dwell = {k: v for k, v in result.hyperparameters.items() if k.startswith("dwell_")}
     # full-rate state sequences: the coarse runs, each switch placed by the change-point posterior
     runs_all: list[list[tuple[int, int, int]]] = []  # (state, start, end) at full rate
     states_full = []
@@ -910,7 +940,8 @@ def segment(
                 cuts.append(min(max(coarse[r], cuts[-1] + 1), Ti - 1))
                 junc.append((cuts[-1], xf.new_zeros(0)))
                 continue
-            cut, doubt = _refine_switch(ll, int(values[r - 1]), int(values[r]), lo, hi, k)
+            cut, doubt = _refine_switch(ll, int(values[r - 1]), int(values[r]), lo, hi, k,
+                                        None if dwell is None else _dwell_switch_prior(dwell[i], grid[i], Ti, info_dwell))
             cuts.append(cut)
             junc.append((lo, doubt))
         cuts.append(Ti)
@@ -944,6 +975,7 @@ def segment(
         "log_prob": result.log_prob,
         "collapsed_log_prob": result.collapsed_log_prob,
         "chain": result.chain,
+        "dwell": info_dwell,
     }
     stretch = max(3, min(min_lens))
     return _assemble(demos, pieces, routes, route_of, states_full, step_state, stretch, sigma_x**2, result, info,

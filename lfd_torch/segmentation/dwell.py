@@ -1,0 +1,159 @@
+"""Dwell: the time a demonstration spends between two grid points, as evidence of where a step begins.
+
+Notation:
+    N  sequences, T padded grid length, B labellings (or chains) scored at once
+    c  (N, T) dwell covariate on the sampler's grid: c_t = log(Delta_t / median Delta), Delta_t the time between
+       grid points t - 1 and t (c_0 = 0, unused)
+    b  (B, N, T) 1 where a run of a state starts at t (phase 0 of the explicit-duration states), else 0
+    mask  (N, T) bool, the grid points where a run can start: D <= t <= T_i - D (the first and the last run last at
+       least D points, :func:`~lfd_torch.segmentation.transitions.expand_min_duration`)
+
+Why. The sampler's grid is equally spaced in path length (:mod:`.segmentation`, item 3c): a leg gets grid points
+in proportion to its length whatever its timing, so the direction fields do not see how long the demonstrator
+dwells somewhere. But a human demonstrator who ends one subtask and begins the next usually slows down or pauses
+there (each subtask a reaching movement with its own bell-shaped speed profile, Flash & Hogan 1985), and that is
+the cue that separates a step boundary from a turn made at speed inside one step (the scoop's dip-drag-lift hook,
+a curved leg). The grid keeps it: the time between the grid points on either side of a pause is long. So the
+model also explains the dwell, with one regression shared by all states,
+
+    c_t = mu + delta b_t + e_t,   e_t ~ N(0, sigma^2),   t in mask,
+
+whose parameters are learned from the data with the state sequence: (mu, delta, sigma^2) ~ NIG, i.e. the
+Matrix-Normal-Inverse-Wishart prior of :mod:`.field` with d = 1 and regressors [1, b_t] (the same conjugate
+kernels: :func:`~lfd_torch.segmentation.field.field_posterior`, ``field_log_marginal_likelihood``,
+``sample_field``, ``field_log_density``). Nothing says in advance that switches come with a dwell: delta has a
+symmetric prior around 0, so where the data have none (constant-speed demonstrations, LASA shapes traced without
+pauses) delta is ~0 and the term changes nothing but an Occam factor of about 1/2 log(1 + n_starts v_delta), paid
+once; where they have one, a switch at a long dwell gains and a switch at speed pays about delta^2 / (2 sigma^2)
+nats. The model, not a threshold, decides what a long dwell is.
+
+It is an emission of the phase-expanded HMM (phase 0: the first point of a run, any other phase: inside a run), so
+every move stays exact: the forward filter and FFBS add log N(c_t; mu + delta, sigma^2) to the phase-0 states and
+log N(c_t; mu, sigma^2) to the others; the Gibbs step draws (mu, delta, sigma^2) from the NIG posterior given the
+phases; the collapsed score adds the NIG evidence of c given b. Points outside the mask are not observed (no
+labelling can put a switch there; the start and end rests of every demonstration would otherwise pose as the spread
+inside a step). It needs D >= 2 (with D = 1 the expanded states carry no phase).
+
+Prior (c is a log ratio to the sequence's median, so unit free): sigma^2 ~ IG with nu0 = 3, S0 = 0.1 (E[sigma^2]
+= 0.1, i.e. a dwell typically within a factor e^0.3 of the median inside a step); (mu, delta) | sigma^2 ~ N(0,
+sigma^2 10^2 I), so delta / sigma has a prior standard deviation of 10 (vague over any plausible dwell ratio).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from lfd_torch.errors import InvalidArgumentError, NonFiniteError
+from lfd_torch.gmm import gaussian_log_density
+from lfd_torch.segmentation.field import (
+    FieldPrior,
+    field_log_density,
+    field_log_marginal_likelihood,
+    field_posterior,
+    field_statistics,
+)
+
+__all__ = [
+    "dwell_covariate",
+    "dwell_mask",
+    "dwell_prior",
+    "dwell_regressors",
+    "dwell_posterior",
+    "dwell_evidence",
+    "dwell_log_likelihood",
+    "dwell_log_prob",
+    "posterior_summary",
+]
+
+_SLOPE_VARIANCE = 100.0  # (mu, delta) | sigma^2 ~ N(0, sigma^2 * this * I)
+_NOISE_DOF = 3.0  # nu0 of sigma^2 ~ IW(nu0, S0) (d = 1: an inverse gamma)
+_NOISE_MEAN = 0.1  # E[sigma^2] = S0 / (nu0 - 2)
+
+
+def dwell_covariate(times: Tensor, grid: Tensor) -> Tensor:
+    """(n,) c of one sequence: c_0 = 0, c_t = log(Delta_t / median Delta) for t >= 1.
+
+    Args:
+        times: (T,) sample times of the full-rate sequence, increasing (s).
+        grid: (n,) increasing sample indices of the grid points (:func:`~lfd_torch.segmentation.path_grid`).
+    """
+    t = times[grid]
+    gaps = t[1:] - t[:-1]
+    if gaps.numel() == 0:
+        return torch.zeros_like(t)
+    if not bool((gaps > 0).all()) or not bool(torch.isfinite(gaps).all()):
+        raise NonFiniteError("times must increase strictly and be finite along the grid")
+    return torch.cat([torch.zeros_like(t[:1]), torch.log(gaps / gaps.median())])
+
+
+def dwell_mask(lengths: Tensor, T: int, min_duration: int) -> Tensor:
+    """(N, T) bool: the grid points where a run can start (module docstring), given the (N,) valid lengths."""
+    D = int(min_duration)
+    if D < 2:
+        raise InvalidArgumentError(f"the dwell term needs a minimum duration of at least 2 grid points, got {D}")
+    t = torch.arange(T, device=lengths.device).unsqueeze(0)
+    return (t >= D) & (t <= (lengths - D).unsqueeze(1))
+
+
+def dwell_prior(dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> FieldPrior:
+    """The NIG prior of (mu, delta, sigma^2) of the module docstring, as a d = 1, p = 2 MNIW."""
+    return FieldPrior(
+        mean=torch.zeros(1, 2, dtype=dtype, device=device),
+        row_covariance=_SLOPE_VARIANCE * torch.eye(2, dtype=dtype, device=device),
+        dof=torch.tensor(_NOISE_DOF, dtype=dtype, device=device),
+        scale=torch.full((1, 1), _NOISE_MEAN * (_NOISE_DOF - 2.0), dtype=dtype, device=device),
+    )
+
+
+def dwell_regressors(phase: Tensor, mask: Tensor, dtype: torch.dtype = torch.float64) -> Tensor:
+    """(..., N, T, 2) regressors [1, b_t] from the phases (..., N, T) of the explicit-duration states."""
+    b = ((phase == 0) & mask).to(dtype)
+    return torch.stack([torch.ones_like(b), b], -1)
+
+
+def _statistics(c: Tensor, mask: Tensor, phase: Tensor) -> tuple[Tensor, ...]:
+    """MNIW statistics (counts, Szz, Suz, Suu) of shape (B, 1, ...) of the labellings' phases (B, N, T)."""
+    B = phase.shape[0]
+    z = dwell_regressors(phase, mask, c.dtype).flatten(1, 2)  # (B, N T, 2)
+    u = c.reshape(1, -1, 1)
+    m = mask.reshape(1, -1, 1).to(c.dtype).expand(B, -1, -1)
+    return field_statistics(z, u, torch.ones_like(u[..., 0]), m)
+
+
+def dwell_posterior(prior: FieldPrior, c: Tensor, mask: Tensor, phase: Tensor) -> FieldPrior:
+    """NIG posterior of (mu, delta, sigma^2) for B labellings: batch shape (B, 1); phase (B, N, T)."""
+    return field_posterior(prior, *_statistics(c, mask, phase))
+
+
+def dwell_evidence(prior: FieldPrior, c: Tensor, mask: Tensor, phase: Tensor) -> Tensor:
+    """(B,) log p(c | b) with (mu, delta, sigma^2) integrated out, for the phases (B, N, T) of B labellings."""
+    return field_log_marginal_likelihood(prior, *_statistics(c, mask, phase))[..., 0]
+
+
+def dwell_log_likelihood(c: Tensor, mask: Tensor, beta: Tensor, noise: Tensor) -> Tensor:
+    """(B, N, T, 2) log N(c_t; mu + delta b, sigma^2) for b = 0 (inside a run) and b = 1 (first point of a run),
+    0 outside the mask; beta (B, 2) = (mu, delta), noise (B,) = sigma^2."""
+    N, T = c.shape
+    means = torch.stack([beta[:, 0], beta[:, 0] + beta[:, 1]], -1).unsqueeze(-1)  # (B, 2, 1)
+    cov = noise.view(-1, 1, 1, 1).expand(-1, 2, 1, 1)
+    ll = gaussian_log_density(c.reshape(1, N * T, 1), means, cov)  # (B, N T, 2)
+    return (ll * mask.reshape(1, N * T, 1).to(ll.dtype)).reshape(-1, N, T, 2)
+
+
+def dwell_log_prob(prior: FieldPrior, c: Tensor, mask: Tensor, phase: Tensor, beta: Tensor, noise: Tensor) -> Tensor:
+    """(B,) log p(c | b, mu, delta, sigma^2) + log NIG(mu, delta, sigma^2): the dwell part of the joint log
+    probability of B chains with phases (B, N, T)."""
+    ll = dwell_log_likelihood(c, mask, beta, noise)
+    start = ((phase == 0) & mask).long().unsqueeze(-1)
+    lp = ll.gather(-1, start).squeeze(-1).sum((-1, -2))
+    return lp + field_log_density(beta.unsqueeze(-2), noise.view(-1, 1, 1), prior)
+
+
+def posterior_summary(post: FieldPrior) -> dict[str, float]:
+    """Posterior means of mu, delta and sigma of a single labelling's posterior (batch shape (1, 1))."""
+    mean = post.mean.reshape(-1)
+    var = float(post.scale.reshape(-1)[0]) / max(float(post.dof.reshape(-1)[0]) - 2.0, 1e-12)
+    return {"dwell_mean": float(mean[0]), "dwell_shift": float(mean[1]), "dwell_noise": math.sqrt(var)}
