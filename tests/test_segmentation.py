@@ -890,16 +890,17 @@ def test_duration_phases_count_samples_since_the_run_began_capped_at_d_minus_one
             assert got[tuple(idx)].tolist() == want
 
 
-@pytest.mark.parametrize(("position_weight", "straight_weight"), [(0.0, 0.0), (None, 0.0), (None, 0.5)],
-                         ids=["directions", "with_position", "with_straight_states"])
+@pytest.mark.parametrize(("position_weight", "straight_weight", "dwell_cue"),
+                         [(0.0, 0.0, False), (None, 0.0, False), (None, 0.5, False), (None, 0.5, True)],
+                         ids=["directions", "with_position", "with_straight_states", "with_dwell"])
 def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(monkeypatch, position_weight,
-                                                                               straight_weight):
+                                                                               straight_weight, dwell_cue):
     """selection="map": no merge of two states of the returned sample, no reassignment of one state's runs in
     one sequence and no split of one state (its runs cut in halves, found here in a loop over runs, then the
     model's relabelling) raises its collapsed score (every candidate scored one at a time here), the reported
     score is that of the returned labelling, and it is at least that of the best sampled one (selection="collapsed",
     the same chains); with and without the position term, and with the spike-and-slab (straight or affine) field
-    prior."""
+    prior, and with the dwell term."""
     syn = synthetic(*MUTATION_CASE)
     runs = []
     original = sampler_module._Run.sample
@@ -910,10 +911,10 @@ def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(m
 
     monkeypatch.setattr(sampler_module._Run, "sample", capture)
     seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="map",
-                  position_weight=position_weight, straight_weight=straight_weight)
+                  position_weight=position_weight, straight_weight=straight_weight, dwell_cue=dwell_cue)
     run, res = runs[-1], seg.sampler
     best = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="collapsed",
-                   position_weight=position_weight, straight_weight=straight_weight)
+                   position_weight=position_weight, straight_weight=straight_weight, dwell_cue=dwell_cue)
     assert best.info["collapsed_log_prob"] <= seg.info["collapsed_log_prob"] + 1e-9
     assert math.isnan(seg.info["log_prob"])
     hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
@@ -977,10 +978,11 @@ def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(m
             assert float(cos.median()) > 0.9, k
 
 
-@pytest.mark.parametrize(("position_weight", "straight_weight"), [(0.0, 0.0), (None, 0.0), (None, 0.5)],
-                         ids=["directions", "with_position", "with_straight_states"])
+@pytest.mark.parametrize(("position_weight", "straight_weight", "dwell_cue"),
+                         [(0.0, 0.0, False), (None, 0.0, False), (None, 0.5, False), (None, 0.5, True)],
+                         ids=["directions", "with_position", "with_straight_states", "with_dwell"])
 def test_map_search_batched_scores_equal_the_full_score_one_candidate_at_a_time(monkeypatch, position_weight,
-                                                                                straight_weight):
+                                                                                straight_weight, dwell_cue):
     """The mode search's shortcuts (``_Run._climb_to_mode``) against the plain computation: the reassignment
     scores updated from the current score by the terms a move touches equal ``_collapsed_score`` of every
     candidate, and the batched Viterbi relabelling of several labellings (the look-ahead and split candidates)
@@ -996,7 +998,7 @@ def test_map_search_batched_scores_equal_the_full_score_one_candidate_at_a_time(
 
     monkeypatch.setattr(sampler_module._Run, "sample", capture)
     seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="map",
-                  position_weight=position_weight, straight_weight=straight_weight)
+                  position_weight=position_weight, straight_weight=straight_weight, dwell_cue=dwell_cue)
     run, res = runs[-1], seg.sampler
     hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
              for k in ("transition_concentration", "stickiness", "feature_mass")]
