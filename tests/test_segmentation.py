@@ -297,8 +297,12 @@ def _order_pairs(a, b, wa, wb):  # mutant of ``_lcs``: the k-th run of one seque
     return [(k, k) for k in range(min(len(a), len(b)))]
 
 
-@pytest.mark.parametrize("position_weight", [0.0, None], ids=["directions", "position"])
-def test_demonstration_that_skips_a_step_is_aligned_by_its_states(monkeypatch, position_weight):
+# the settings before the map search, the position term, straight states and the dwell term became the defaults
+JOINT_DIRECTIONS = dict(selection="joint", position_weight=0.0, straight_weight=0.0, dwell_cue=False)
+
+
+@pytest.mark.parametrize("options", [JOINT_DIRECTIONS, {}], ids=["joint_directions", "default"])
+def test_demonstration_that_skips_a_step_is_aligned_by_its_states(monkeypatch, options):
     """Property (issue 7, item 2): three demonstrations go A, B1, B2, C (a detour north and back between two legs
     east); a fourth leaves the detour out (A, then C). The model gives the fourth demonstration's two runs the
     states of A and C, and the alignment of the runs by their states puts it on the route's first and last steps:
@@ -307,7 +311,7 @@ def test_demonstration_that_skips_a_step_is_aligned_by_its_states(monkeypatch, p
     states, not by order."""
     def skipped(seed):
         seg = segment(_detour_demos(seed, _DETOUR[[0, 1, 4]]), generator=torch.Generator().manual_seed(seed),
-                      position_weight=position_weight)  # fmt: skip
+                      **options)  # fmt: skip
         route = list(seg.routes[0]) if seg.n_routes == 1 else []
         return (len(route) == 4 and all(seg.step_sequence(i) == route for i in range(3))
                 and seg.step_sequence(3) == [route[0], route[-1]]), (seg.routes, [seg.step_sequence(i) for i in range(4)])
@@ -830,7 +834,7 @@ def test_collapsed_selection_returns_the_best_collapsed_score_of_the_same_chains
     """selection does not change the chains (no extra randomness), only which of their sweeps is returned: the
     collapsed choice has the highest collapsed score among them, the joint choice the highest joint one."""
     syn = synthetic(*MUTATION_CASE)
-    joint = segment(syn.demos, generator=torch.Generator().manual_seed(0))
+    joint = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="joint")
     coll = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="collapsed")
     assert coll.info["collapsed_log_prob"] >= joint.info["collapsed_log_prob"]
     assert joint.info["log_prob"] >= coll.info["log_prob"]
@@ -870,7 +874,7 @@ def test_modal_selection_returns_a_sample_with_the_posterior_modal_step_counts(m
     got = [len(runs) for runs in modal.info["coarse_runs"]]
     assert got == expected
     record.clear()
-    joint = segment(syn.demos, generator=torch.Generator().manual_seed(0))
+    joint = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="joint")
     assert joint.info["log_prob"] >= modal.info["log_prob"]
     assert math.isfinite(modal.info["collapsed_log_prob"])
 
@@ -1038,7 +1042,7 @@ def test_straight_states_cut_single_demonstrations_of_straight_legs(monkeypatch)
     def found_all(seed, straight_weight):
         syn = FAMILIES["straight_const_2d"](torch.Generator().manual_seed(data_seed("straight_const_2d", seed)), 1)
         seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), selection="map",
-                      position_weight=None, straight_weight=straight_weight)  # fmt: skip
+                      position_weight=None, straight_weight=straight_weight, dwell_cue=False)  # fmt: skip
         found = seg.pieces[0][1:, 1].to(torch.float64)
         true = syn.switch_times[0].to(torch.float64)
         tol = 0.03 * int(seg.labels[0].shape[0])

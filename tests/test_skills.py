@@ -189,7 +189,8 @@ def test_vectorised_decisions_equal_the_py_trees_tick(which: str, mode: str, req
         t = eng.tick(x[i], step=lib.routes[r][j], route=r)
         assert (t.route, t.index, t.done) == (int(dec.route[i]), int(dec.index[i]), bool(dec.done[i]))
         assert int(t.branch) == int(branch[i])
-        assert torch.allclose(t.velocity, v[i], rtol=1e-12, atol=1e-12)
+        # rounding only: the batched and per-row paths sum the entropy terms in different orders
+        assert torch.allclose(t.velocity, v[i], rtol=1e-10, atol=1e-10), (t.velocity - v[i], t.branch)
         n_done += t.done
         n_advanced += t.index > j
         if i % 5 == 0:

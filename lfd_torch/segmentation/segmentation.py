@@ -803,9 +803,9 @@ def segment(
     direction_noise: float = 0.2,
     extra_dof: float = 30.0,
     robust_dof: float | None = 4.0,
-    position_weight: float | None = 0.0,
-    straight_weight: float = 0.0,
-    dwell_cue: bool = False,
+    position_weight: float | None = None,
+    straight_weight: float = 0.5,
+    dwell_cue: bool = True,
     feature_mass: float = 2.0,
     feature_concentration: float = 1.0,
     transition_concentration: float = 1.0,
@@ -817,7 +817,7 @@ def segment(
     birth_window: float = 0.1,
     birth_prior_mix: float = 0.1,
     resample_hyperparameters: bool = False,
-    selection: str = "joint",
+    selection: str = "map",
     progress: bool = False,
 ) -> Segmentation:
     """Segment demonstrations into steps with the BP-GM-HMM (no number of steps is given).
@@ -941,7 +941,7 @@ def segment(
                 junc.append((cuts[-1], xf.new_zeros(0)))
                 continue
             cut, doubt = _refine_switch(ll, int(values[r - 1]), int(values[r]), lo, hi, k,
-                                        None if dwell is None else _dwell_switch_prior(dwell[i], grid[i], Ti, info_dwell))
+                                        None if not info_dwell else _dwell_switch_prior(dwell[i], grid[i], Ti, info_dwell))
             cuts.append(cut)
             junc.append((lo, doubt))
         cuts.append(Ti)
