@@ -67,7 +67,7 @@ def labelling_evidence(seg, demos, labels: torch.Tensor, direction_noise: float 
     return float(ll.gather(-1, lab[:, None]).sum() + field_log_density(b, psi, prior).sum())
 
 
-def run_seed(seed: int, evidence: bool = False, selection: str = "joint", **options) -> dict:
+def run_seed(seed: int, evidence: bool = False, selection: str = "map", **options) -> dict:
     demo = scooping_demonstration(seed)
     demos = Preprocess()(demo.demos())
     T = demo.n_samples
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seeds", type=int, default=10, help="generator seeds 0..N-1")
     ap.add_argument("--json", type=str, default=None)
     ap.add_argument("--evidence", action="store_true", help="also the evidence gap found - truth (nats)")
-    ap.add_argument("--selection", choices=list(SELECTIONS), default="joint",
+    ap.add_argument("--selection", choices=list(SELECTIONS), default="map",
                     help="segment(selection=...): how the returned sample is chosen")
     ap.add_argument("--segment-option", nargs="+", default=[], metavar="KEY=VALUE",
                     help="other segment() keyword arguments (numbers, or None), e.g. extra_dof=2")

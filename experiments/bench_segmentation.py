@@ -65,7 +65,8 @@ from lfd_torch.segmentation import segment
 from lfd_torch.segmentation.synthetic import FAMILIES, SyntheticSteps
 
 LASA_SHAPES = ("Multi_Models_1", "Multi_Models_2", "Multi_Models_3", "Multi_Models_4", "Angle", "Sshape")
-METHODS = ("segment", "segment_collapsed", "segment_modal", "segment_map", "ruptures", "ruptures_l2", "hmmlearn")
+METHODS = ("segment", "segment_joint", "segment_collapsed", "segment_modal", "segment_map", "ruptures", "ruptures_l2",
+           "hmmlearn")
 TOLERANCE = 0.03  # a switch is found when a detected one lies within 3 % of the demonstration's length
 SAVGOL_WINDOW = 25  # samples (0.25 s at dt = 0.01 s)
 PENALTY_C = 1.0  # PELT penalty = PENALTY_C * log(T) * n_features
@@ -165,16 +166,18 @@ def _sequences(syn: SyntheticSteps) -> list[np.ndarray]:
     return [syn.demos.positions[i, : int(n)].cpu().numpy() for i, n in enumerate(syn.demos.lengths)]
 
 
-def detect_segment(syn: SyntheticSteps, seed: int, selection: str = "joint",
+def detect_segment(syn: SyntheticSteps, seed: int, selection: str | None = None,
                    **options: Any) -> tuple[list[list[int]], dict[str, Any]]:  # fmt: skip
     """``lfd_torch.segmentation.segment`` with its default settings (``segment_collapsed`` / ``segment_modal`` /
-    ``segment_map``: the returned sample chosen with ``selection="collapsed"`` / ``"modal"`` / ``"map"``), or others
-    given by ``--segment-option``."""
+    ``segment_map`` / ``segment_joint``: the returned sample chosen with ``selection="collapsed"`` / ``"modal"`` /
+    ``"map"`` / ``"joint"``; None: the default's), or others given by ``--segment-option``."""
     from lfd_torch.segmentation import SegmentationWarning
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SegmentationWarning)
-        seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), selection=selection, **options)
+        if selection is not None:
+            options = {**options, "selection": selection}
+        seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), **options)
     return [switches_from_labels(lab) for lab in seg.labels], {"n_steps": seg.n_steps}
 
 
@@ -238,6 +241,7 @@ def detect_hmmlearn(syn: SyntheticSteps, seed: int) -> tuple[list[list[int]], di
 
 DETECTORS: dict[str, Callable[[SyntheticSteps, int], tuple[list[list[int]], dict[str, Any]]]] = {
     "segment": detect_segment,
+    "segment_joint": lambda syn, seed: detect_segment(syn, seed, "joint"),
     "segment_collapsed": lambda syn, seed: detect_segment(syn, seed, "collapsed"),
     "segment_modal": lambda syn, seed: detect_segment(syn, seed, "modal"),
     "segment_map": lambda syn, seed: detect_segment(syn, seed, "map"),
@@ -380,6 +384,7 @@ def main() -> None:
     options = segment_options(args.segment_option)
     if options:
         DETECTORS["segment"] = functools.partial(detect_segment, **options)
+        DETECTORS["segment_joint"] = functools.partial(detect_segment, selection="joint", **options)
         DETECTORS["segment_collapsed"] = functools.partial(detect_segment, selection="collapsed", **options)
         DETECTORS["segment_modal"] = functools.partial(detect_segment, selection="modal", **options)
         DETECTORS["segment_map"] = functools.partial(detect_segment, selection="map", **options)

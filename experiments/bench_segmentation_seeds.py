@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--shapes", nargs="+", default=[f"Multi_Models_{i}" for i in range(1, 5)])
     ap.add_argument("--seeds", type=int, default=10)
-    ap.add_argument("--selection", choices=list(SELECTIONS), default="joint",
+    ap.add_argument("--selection", choices=list(SELECTIONS), default="map",
                     help="segment(selection=...): how the returned sample is chosen")
     ap.add_argument("--segment-option", nargs="+", default=[], metavar="KEY=VALUE",
                     help="further segment() keyword arguments (numbers, or None), e.g. extra_dof=2")

@@ -25,8 +25,13 @@ sequences in one forward pass and then decides sequence by sequence (the IBP cou
 move 2 is batched over sequences too (unique features of different sequences do not interact); move 3 over chains
 and sequences. The chain with the best joint log probability (over the samples after burn-in) is returned.
 
-Which sample (``selection``), among the sweeps of every chain after burn-in:
-    "joint" (default): the highest joint log probability. Its collapsed score (every continuous parameter integrated
+Which sample (``selection``), among the sweeps of every chain after burn-in. :func:`lfd_torch.segmentation.segment`
+defaults to "map" with the position term, straight states and the dwell term (sections below; the sampler class
+itself to "joint" with directions alone). The figures in this docstring that name no options were measured with the
+earlier defaults of ``segment`` (``selection="joint", position_weight=0, straight_weight=0, dwell_cue=False``):
+their commands reproduce them with ``--segment-option position_weight=0 straight_weight=0 dwell_cue=False`` (and
+``--selection joint`` for ``bench_segmentation_seeds.py`` and ``bench_scooping_segmentation.py``).
+    "joint": the highest joint log probability. Its collapsed score (every continuous parameter integrated
         out: MNIW evidence of each state's directions, Dirichlet-multinomial sticky transitions, IBP prior) is
         reported too.
     "collapsed": the highest collapsed score. Measured (issue 7): it made the step count seed-stable where the
@@ -109,7 +114,7 @@ samples): a leg of n grid points counts as n / D position observations. Temperin
 conjugate (the NIW statistics are weighted by tau; the collapsed score adds the tempered NIW evidence of each
 state's positions, the joint log probability the NIW density of (mu_k, Sigma_k)); births draw (mu*, Sigma*)
 from the tempered posterior of the same window as the field. ``position_weight=0`` is the direction-only model
-(nothing is drawn for the positions; the default, which the stored tables were made with).
+(nothing is drawn for the positions; the sampler's default).
 Measured with ``selection="map"`` and tau = 1 / D (``experiments/bench_segmentation_seeds.py --selection map
 --segment-option position_weight=None``): every demonstration and route of LASA Multi_Models_1-4 gets its most
 common step count on 9 or 10 of 10 seeds, one route grouping per shape (without it, Multi_Models_4: 5-10 of 10,
@@ -142,7 +147,23 @@ demonstration 76 %, 73 %; without: 81 %, 74 %, 1 demonstration 69 %, 66 %; the j
 legs met at speed by a single demonstration are now cut (straight_const_2d 10 of 10, was 8), but not curved legs
 with dwelling corners (curved_dwell_2d 4 of 10) nor the scoop hook (every switch 0-10 %); the Baxter scooping
 demonstration still gives 5-6 steps (``bench_scooping_segmentation.py --selection map --segment-option
-position_weight=None straight_weight=0.5``). The default stays 0 (affine fields only, the stored tables).
+position_weight=None straight_weight=0.5``).
+
+Dwell (``dwell``, :mod:`lfd_torch.segmentation.dwell`, the derivation there). The path-length grid hides how long
+the demonstrator spends somewhere, and a pause is where one subtask ends and the next begins. The model also
+explains the log time between grid points, c_t = mu + delta b_t + noise, b_t = 1 at the first point of a run, with
+(mu, delta, sigma^2) ~ NIG learned with the states: an emission of phase 0 of the explicit-duration states, so it
+enters the forward pass, FFBS, the Gibbs draw, the joint log probability, the collapsed score and the map search
+exactly. Nothing fixes how much a pause counts: where the data pause at their corners delta is ~2 (a start at
+speed then pays about delta^2 / (2 sigma^2) ~ 10 nats); at constant speed ~0.4 (only the dip of the estimated
+speed where a velocity window straddles a corner). Measured with map, the position term and straight states
+(``bench_segmentation.py --parts synthetic --method segment_map --segment-option position_weight=None
+straight_weight=0.5 dwell_cue=True``, i.e. ``segment``'s defaults): every switch on 85 % of the 280 synthetic cases
+(without the dwell term 77 %); the scoop with dwelling corners 8 / 7 of 10 with 1 / 4 demonstrations (0 / 0 without),
+curved legs with dwelling corners 10 / 9 (4 / 9); LASA Multi_Models_1-4: every demonstration and route its most
+common step count on 10 of 10 seeds (``bench_segmentation_seeds.py``). Not cured: the Baxter scooping
+demonstration still gives 5 steps (its true switches, at pauses, are found; the scoop's U bottom and the near-rest
+of the tipping are cut too: the fields prefer those cuts by far more than the dwell term charges).
 
 Subsampling (done by :func:`lfd_torch.segmentation.segment`, ``max_samples``) bounds T: the forward recursion is
 sequential in T, so the cost of a sweep is about (number of feature blocks + 2) x T small batched operations.
@@ -337,7 +358,7 @@ class BetaProcessHMMSampler:
         birth_prior_mix: probability that the birth proposal draws theta* from the prior instead of the window
             posterior (keeps the reverse death move possible for features far from the data).
         resample_hyperparameters: also sample gamma, alpha and kappa.
-        selection: "joint" (default) returns the sample with the highest joint log probability, "collapsed" the one
+        selection: "joint" (default here; ``segment`` defaults to "map") returns the sample with the highest joint log probability, "collapsed" the one
             with the highest collapsed score, "modal" the best joint sample with the posterior-modal number of runs
             per sequence, "map" a local mode of the collapsed posterior reached from the chains' best samples
             (module docstring, "Which sample").

@@ -71,11 +71,17 @@ density. No variant tried gives 3 steps on any seed: a 4x looser slope and offse
 fields (seeds 0-5), ``max_samples=200`` with affine or quadratic fields, ``stickiness=500``,
 ``min_length=0.12``, ``direction_noise=0.5`` (seeds 0-3 each). The cue that separates the generator's stages
 from those within-stage turns is the 0.2-0.5 s rest before each stage switch, and the path-length grid (item 3c)
-deliberately gives a rest no grid point. A rest-aware transition model would have to charge 65-90 nats for a
-switch made at speed to keep the two within-stage turns; by the same computation (merging two true steps) the
-true corners of ``straight_const_3d`` (seeds 0-5, 1 demonstration) carry 18-87 nats, those of 30-50 degrees
-18-25, so such a charge would remove most true corners met at speed. It is not used.
-The synthetic ``scoop_*`` families show the same limit at the approach-hook corner (figures from a one-off analysis
+deliberately gives a rest no grid point (these figures are of the earlier defaults, ``selection="joint"`` with
+directions alone). A fixed charge for a switch made at speed would have to be 65-90 nats to keep the two
+within-stage turns; by the same computation (merging two true steps) the true corners of ``straight_const_3d``
+(seeds 0-5, 1 demonstration) carry 18-87 nats, those of 30-50 degrees 18-25, so such a charge would remove most
+true corners met at speed. The dwell term (:mod:`.dwell`, on by default) lets the data say how much a pause marks
+a switch instead: the demonstration's pauses are found as switches, but the learned charge for a switch at speed
+(a few nats) does not remove the within-stage cuts, and the count stays 5
+(``experiments/bench_scooping_segmentation.py``, results/tables/bench_scooping_segmentation.json).
+The synthetic ``scoop_*`` families showed the same limit at the approach-hook corner; with the dwell term the
+dwelling variant is found (a pause marks each true corner), the constant-speed one is not (figures of the earlier
+defaults, from a one-off analysis
 that scores both labellings with the sampler's collapsed score; no project command reproduces them): the hook starts 30-65 degrees
 below the approach and turns back up through the approach's direction, so its first third runs within about 30
 degrees of the approach; the model puts the first switch there, 25-60 samples after the corner, and its collapsed
