@@ -358,8 +358,8 @@ class BetaProcessHMMSampler:
         birth_prior_mix: probability that the birth proposal draws theta* from the prior instead of the window
             posterior (keeps the reverse death move possible for features far from the data).
         resample_hyperparameters: also sample gamma, alpha and kappa.
-        selection: "joint" (default here; ``segment`` defaults to "map") returns the sample with the highest joint log probability, "collapsed" the one
-            with the highest collapsed score, "modal" the best joint sample with the posterior-modal number of runs
+        selection: "joint" (default here; ``segment`` defaults to "map") returns the sample with the highest joint
+            log probability, "collapsed" the one with the highest collapsed score, "modal" the best joint sample with the posterior-modal number of runs
             per sequence, "map" a local mode of the collapsed posterior reached from the chains' best samples
             (module docstring, "Which sample").
         progress: show a tqdm progress bar.
@@ -1144,7 +1144,7 @@ class _Run:
             trace=trace,
             n_features_trace=n_feat,
             chain=c_best,
-            hyperparameters={**snap["hyper"], **self.dwell_summary(snap["states"])},
+            hyperparameters={**snap["hyper"], **self._dwell_summary(snap["states"])},
             acceptance=acceptance,
         )
 
@@ -1411,7 +1411,7 @@ class _Run:
         noise = post.scale.reshape(-1) / (post.dof.reshape(-1) - 2.0)
         return dwell_log_likelihood(self.dwell, self.dwell_mask, post.mean.reshape(-1, 2), noise)
 
-    def dwell_summary(self, s: Tensor) -> dict[str, float]:
+    def _dwell_summary(self, s: Tensor) -> dict[str, float]:
         """Posterior means of mu, delta and sigma of the dwell term given one labelling s (N, T); {} without it."""
         if self.dwell is None:
             return {}
