@@ -3,7 +3,7 @@
 Notation:
     N  sequences, T padded grid length, B labellings (or chains) scored at once
     c  (N, T) dwell covariate on the sampler's grid: c_t = log(Delta_t / median Delta), Delta_t the time between
-       grid points t - 1 and t (c_0 = 0, unused)
+       grid points t - 1 and t (c_0 = 0, unused); (B, N, T) where every chain has its own data (the Geweke test)
     b  (B, N, T) 1 where a run of a state starts at t (phase 0 of the explicit-duration states), else 0
     mask  (N, T) bool, the grid points where a run can start: D <= t <= T_i - D (the first and the last run last at
        least D points, :func:`~lfd_torch.segmentation.transitions.expand_min_duration`)
@@ -118,7 +118,7 @@ def _statistics(c: Tensor, mask: Tensor, phase: Tensor) -> tuple[Tensor, ...]:
     """MNIW statistics (counts, Szz, Suz, Suu) of shape (B, 1, ...) of the labellings' phases (B, N, T)."""
     B = phase.shape[0]
     z = dwell_regressors(phase, mask, c.dtype).flatten(1, 2)  # (B, N T, 2)
-    u = c.reshape(1, -1, 1)
+    u = c.reshape(-1, mask.numel(), 1)  # (1 or B, N T, 1)
     m = mask.reshape(1, -1, 1).to(c.dtype).expand(B, -1, -1)
     return field_statistics(z, u, torch.ones_like(u[..., 0]), m)
 
@@ -135,11 +135,11 @@ def dwell_evidence(prior: FieldPrior, c: Tensor, mask: Tensor, phase: Tensor) ->
 
 def dwell_log_likelihood(c: Tensor, mask: Tensor, beta: Tensor, noise: Tensor) -> Tensor:
     """(B, N, T, 2) log N(c_t; mu + delta b, sigma^2) for b = 0 (inside a run) and b = 1 (first point of a run),
-    0 outside the mask; beta (B, 2) = (mu, delta), noise (B,) = sigma^2."""
-    N, T = c.shape
+    0 outside the mask; c (N, T) or (B, N, T), beta (B, 2) = (mu, delta), noise (B,) = sigma^2."""
+    N, T = mask.shape
     means = torch.stack([beta[:, 0], beta[:, 0] + beta[:, 1]], -1).unsqueeze(-1)  # (B, 2, 1)
     cov = noise.view(-1, 1, 1, 1).expand(-1, 2, 1, 1)
-    ll = gaussian_log_density(c.reshape(1, N * T, 1), means, cov)  # (B, N T, 2)
+    ll = gaussian_log_density(c.reshape(-1, N * T, 1), means, cov)  # (B, N T, 2)
     return (ll * mask.reshape(1, N * T, 1).to(ll.dtype)).reshape(-1, N, T, 2)
 
 

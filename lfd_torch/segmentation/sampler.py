@@ -527,9 +527,9 @@ class _Run:
         if dwell is not None:
             self.dwell_mask = dwell_mask(lengths, self.T, self.D)
             self.dwell_prior = dwell_prior(self.dtype, self.device)
-            seen = dwell[self.dwell_mask]
+            seen = dwell[..., self.dwell_mask]
             # a neutral start (delta = 0: no dwell effect until the states say otherwise)
-            self.dwell_beta = torch.stack([seen.mean(), torch.zeros_like(seen[0])]).expand(self.C, 2).clone()
+            self.dwell_beta = torch.stack([seen.mean(), torch.zeros_like(seen.mean())]).expand(self.C, 2).clone()
             self.dwell_noise = seen.var().clamp_min(1e-6).expand(self.C).clone()
             self.dwell_ll = dwell_log_likelihood(dwell, self.dwell_mask, self.dwell_beta, self.dwell_noise)
         self._initialise()
