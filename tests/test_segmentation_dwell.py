@@ -26,7 +26,7 @@ from lfd_torch.segmentation.dwell import (
     dwell_prior,
     dwell_regressors,
 )
-from lfd_torch.segmentation.field import FieldPrior, sample_field
+from lfd_torch.segmentation.field import FieldPrior, field_log_density, sample_field
 from lfd_torch.segmentation.synthetic import FAMILIES
 from lfd_torch.segmentation.transitions import initial_distribution, transition_matrix
 
@@ -96,7 +96,7 @@ def test_dwell_joint_terms_satisfy_the_chib_identity(generator):
     beta, noise = sample_field(post, generator)  # (2, 1, 1, 2), (2, 1, 1, 1)
     beta, noise = beta.reshape(2, 2), noise.reshape(2)
     flat = FieldPrior(post.mean[:, 0], post.row_covariance[:, 0], post.dof[:, 0], post.scale[:, 0])
-    log_post = sampler_module.field_log_density(beta.unsqueeze(-2), noise.view(-1, 1, 1), flat)
+    log_post = field_log_density(beta.unsqueeze(-2), noise.view(-1, 1, 1), flat)
     chib = dwell_log_prob(prior, c, mask, phase, beta, noise) - log_post
     torch.testing.assert_close(chib, evidence, rtol=0, atol=1e-8)
 
