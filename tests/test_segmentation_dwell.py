@@ -156,6 +156,60 @@ def test_dwell_log_likelihood_is_zero_outside_the_mask(generator):
     assert float(ll[0, 0, 4, 1]) == pytest.approx(want, abs=1e-12)
 
 
+# ------------------------------------------------------------------ the full-rate switch prior (segmentation)
+DWELL_PARAMS = {"dwell_mean": 0.05, "dwell_shift": 2.0, "dwell_noise": 0.45}
+
+
+def _rest_path(T: int = 400, t_rest: float = 211.3, width: float = 25.0):
+    """Path length and times of a motion that slows to rest at t_rest: speed 1 - exp(-((t - t_rest) / width)^2)."""
+    t = torch.arange(T, dtype=F64)
+    speed = 1.0 - torch.exp(-(((t - t_rest) / width) ** 2))
+    return torch.cumsum(speed * 0.01, 0), 0.01 * t
+
+
+def test_dwell_switch_prior_equals_a_loop_over_grid_phases():
+    """Reference: per switch time tau and phase phi, walk the samples to find when the path length first reaches
+    L(tau) - phi and L(tau) - phi + h, then average exp(r(c)) over the phases (plain Python)."""
+    length, times = _rest_path(T=120, t_rest=60.0, width=10.0)
+    grid = segmentation_module.path_grid((length.diff(prepend=length.new_zeros(1)) / 0.01).unsqueeze(-1),
+                                         torch.zeros(120, dtype=F64), 6, 0.01)
+    got = segmentation_module._dwell_switch_prior(length, times, grid, DWELL_PARAMS, n_phases=5)
+    L, tm, g = length.tolist(), times.tolist(), grid.tolist()
+    h = L[-1] / len(g)
+    gaps = sorted(tm[b] - tm[a] for a, b in zip(g[:-1], g[1:]))
+    med = torch.tensor(gaps, dtype=F64).median().item()
+    mu, delta, var = DWELL_PARAMS["dwell_mean"], DWELL_PARAMS["dwell_shift"], DWELL_PARAMS["dwell_noise"] ** 2
+
+    def first_reaching(v):
+        return next((j for j, x in enumerate(L) if x >= v), len(L) - 1)
+
+    for tau in range(121):
+        at = L[min(tau, 119)]
+        terms = []
+        for k in range(5):
+            lo = max(at - (k + 0.5) * h / 5, L[0])
+            hi = min(lo + h, L[-1])
+            dt_ = max(tm[first_reaching(hi)] - tm[first_reaching(lo)], 0.01)
+            c = math.log(dt_ / med)
+            terms.append(math.exp((delta * (c - mu) - 0.5 * delta**2) / var))
+        assert float(got[tau]) == pytest.approx(math.log(sum(terms) / 5), rel=1e-9, abs=1e-9), tau
+
+
+@pytest.mark.parametrize("n_grid", [17, 23, 29, 37])
+def test_dwell_switch_prior_centres_a_rest_whatever_the_grid(n_grid):
+    """Property: for a symmetric rest the median of exp(prior) over the switch times around it is the rest itself,
+    for grids of any spacing and phase (the weight of a grid interval alone puts it wherever the grid point that
+    follows the rest happens to lie)."""
+    length, times = _rest_path()
+    T = length.shape[0]
+    targets = (torch.arange(n_grid, dtype=F64) + 0.5) * (float(length[-1]) / n_grid)
+    grid = torch.unique(torch.searchsorted(length, targets).clamp_max(T - 1))
+    w = segmentation_module._dwell_switch_prior(length, times, grid, DWELL_PARAMS)[140:281]
+    cdf = torch.softmax(w, 0).cumsum(0)
+    median = 140 + int(torch.searchsorted(cdf, torch.tensor([0.5], dtype=F64)))
+    assert abs(median - 211.3) <= 2.0, median
+
+
 # ------------------------------------------------------------------------------------------- the mechanism
 SWITCH_TOLERANCE = 0.03
 

@@ -55,6 +55,11 @@ after the sampler creates, removes, merges or moves a step across a state switch
        (switches at dwelling corners 3-4 % of the length off); with Psi_k + c_t I it tends to 1. This cannot create or
        remove a step: it only resolves the time of a switch that the sampler found. At a rest the samples carry no
        direction information (w_t -> 0), the posterior is flat over the rest and the switch falls in its middle.
+       With the dwell term (:mod:`.dwell`) the posterior also carries the term's log ratio of a run starting at t,
+       averaged over the grid's phase (:func:`_dwell_switch_prior`): which grid interval holds a rest is an
+       accident of where the grid points fall, and weighting every t by the interval that contains it put the
+       switch in the middle of that interval, up to half a grid spacing (several % of a dwelling leg) from the
+       rest when the rest sits near a grid point.
 Known limit (measured, not fixed): a step is what ONE affine direction field describes, so a narrow hairpin
 traversed at speed and a reversal at a near-rest are switches to this model whatever a task's semantics say.
 On the Baxter scooping demonstration (``lfd_torch.robot.demonstration``, one demonstration, Preprocess defaults)
@@ -512,12 +517,20 @@ def velocity_noise(sigma_x: float, length: int, stride: int, dt: float, half_wid
     return sigma_x / (dt * sjj.sqrt())
 
 
+def path_length(velocity: Tensor, noise: Tensor, dt: float) -> Tensor:
+    """(T,) estimated path length travelled up to every sample: the cumulative sum of the unbiased speed estimates
+    s_t = (||v_t||^2 - d sigma_v,t^2)_+^(1/2) times dt (``velocity`` (T, d), ``noise`` (T,) its noise per axis)."""
+    d = velocity.shape[-1]
+    speed = (velocity.square().sum(-1) - d * noise.square()).clamp_min(0.0).sqrt()
+    return torch.cumsum(speed * dt, 0)
+
+
 def path_grid(velocity: Tensor, noise: Tensor, stride: int, dt: float) -> Tensor:
     """The sampler's grid: ceil(T / k) samples equally spaced in estimated path length (module docstring, item 3).
 
-    The path length is the sum of the unbiased speed estimates s_t = (||v_t||^2 - d sigma_v,t^2)_+^(1/2) times dt,
-    so a rest (s_t ~ 0) occupies no grid point of its own and a leg gets grid points in proportion to its length,
-    whatever its timing. Without motion (a path of length 0) the grid is every k-th sample.
+    The path length is :func:`path_length`, so a rest (s_t ~ 0) occupies no grid point of its own and a leg gets
+    grid points in proportion to its length, whatever its timing. Without motion (a path of length 0) the grid is
+    every k-th sample.
 
     Args:
         velocity: (T, d) velocities (:func:`scale_velocities`); noise: (T,) their noise per axis
@@ -526,10 +539,9 @@ def path_grid(velocity: Tensor, noise: Tensor, stride: int, dt: float) -> Tensor
     Returns:
         (n,) increasing long sample indices, n <= ceil(T / k).
     """
-    T, d = velocity.shape
+    T = velocity.shape[0]
     n = max(1, math.ceil(T / stride))
-    speed = (velocity.square().sum(-1) - d * noise.square()).clamp_min(0.0).sqrt()
-    length = torch.cumsum(speed * dt, 0)
+    length = path_length(velocity, noise, dt)
     total = float(length[-1])
     if not total > 0.0:
         return torch.arange(0, T, stride, device=velocity.device)
@@ -659,14 +671,36 @@ def _refine_switch(ll: Tensor, a: int, b: int, lo: int, hi: int, stride: int,
     return lo + cut, doubt
 
 
-def _dwell_switch_prior(c: Tensor, grid: Tensor, T: int, params: dict[str, float]) -> Tensor:
-    """(T + 1,) log weight of a switch at every full-rate sample tau under the dwell term (:mod:`.dwell`): a switch
-    at tau makes a run start at the first grid point at or after tau, j, and the term's log ratio there is
-    log N(c_j; mu + delta, sigma^2) - log N(c_j; mu, sigma^2) (posterior means given the returned labelling)."""
+def _dwell_switch_prior(length: Tensor, times: Tensor, grid: Tensor, params: dict[str, float],
+                        n_phases: int = 16) -> Tensor:
+    """(T + 1,) log weight of a switch at every full-rate sample tau under the dwell term (:mod:`.dwell`).
+
+    On the grid a switch makes a run start at a grid point j, and the term's log ratio there is
+    r(c_j) = log N(c_j; mu + delta, sigma^2) - log N(c_j; mu, sigma^2) (posterior means given the returned
+    labelling), c_j = log(time between grid points j - 1 and j / median). At full rate tau lies somewhere inside a
+    grid interval, and where is an accident of the grid's phase (the grid starts half a spacing h into the path).
+    So the weight of tau is r averaged over that phase: with the interval [L(tau) - phi, L(tau) - phi + h] in path
+    length L (:func:`path_length`), phi uniform on [0, h) (``n_phases`` midpoints), the time it takes gives c and
+    the weight is log mean_phi exp(r(c)). A rest then gets a plateau of weight whatever the grid, and the median
+    of the change-point posterior falls in its middle, not at the grid point that happened to follow it.
+
+    Args:
+        length: (T,) path length at every sample; times: (T,) sample times (s); grid: (n,) the grid's samples.
+    """
     mu, delta, var = params["dwell_mean"], params["dwell_shift"], params["dwell_noise"] ** 2
-    ratio = (delta * (c - mu) - 0.5 * delta**2) / var  # (n,)
-    j = torch.searchsorted(grid, torch.arange(T + 1, device=grid.device)).clamp(1, grid.numel() - 1)
-    return ratio[j]
+    T, n = length.shape[0], grid.numel()
+    h = float(length[-1]) / n
+    gaps = times[grid[1:]] - times[grid[:-1]]
+    scale = gaps.median() if gaps.numel() else times.new_tensor(1.0)
+    at = length[torch.arange(T + 1, device=length.device).clamp_max(T - 1)]  # (T + 1,) L(tau)
+    phi = (torch.arange(n_phases, dtype=length.dtype, device=length.device) + 0.5) * (h / n_phases)
+    lo = (at.unsqueeze(-1) - phi).clamp_min(float(length[0]))  # (T + 1, P)
+    hi = (lo + h).clamp_max(float(length[-1]))
+    t_lo = times[torch.searchsorted(length, lo).clamp_max(T - 1)]
+    t_hi = times[torch.searchsorted(length, hi).clamp_max(T - 1)]
+    c = torch.log((t_hi - t_lo).clamp_min(float(times[1] - times[0]) if T > 1 else 1.0) / scale)
+    ratio = (delta * (c - mu) - 0.5 * delta**2) / var
+    return torch.logsumexp(ratio, -1) - math.log(n_phases)
 
 
 def _subtask_spaces(
@@ -843,9 +877,9 @@ def segment(
             vectors, ~radians).
         extra_dof: weight of that prior expectation (pseudo-observations of the noise covariance).
         position_weight: tau of the tempered position Gaussian of every state, in [0, 1]; None: 1 / D (D the
-            minimum duration in grid samples); 0 (default): directions alone (:mod:`.sampler`, "Position").
+            minimum duration in grid samples, the default); 0: directions alone (:mod:`.sampler`, "Position").
         straight_weight: prior probability that a state's field is straight (slope 0) in the collapsed score, in
-            [0, 1); it acts through ``selection="map"`` (:mod:`.sampler`, "Straight states"); 0 (default): affine.
+            [0, 1); it acts through ``selection="map"`` (:mod:`.sampler`, "Straight states"); 0: every field affine.
         dwell_cue: the model also explains the time spent between grid points, with a learned shift at the first
             point of a run (:mod:`.dwell`): a pause marks a step boundary as far as the data show it. Needs a
             minimum duration of at least 2 grid points.
@@ -947,7 +981,8 @@ def segment(
                 junc.append((cuts[-1], xf.new_zeros(0)))
                 continue
             cut, doubt = _refine_switch(ll, int(values[r - 1]), int(values[r]), lo, hi, k,
-                                        None if not info_dwell else _dwell_switch_prior(dwell[i], grid[i], Ti, info_dwell))
+                                        None if not info_dwell else _dwell_switch_prior(
+                                            path_length(vf, sigma_v_full[i], dts[i]), times[i], grid[i], info_dwell))
             cuts.append(cut)
             junc.append((lo, doubt))
         cuts.append(Ti)
