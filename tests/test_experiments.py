@@ -180,7 +180,8 @@ def test_attractor_checks_of_the_seed_bench_against_closed_forms():
     """``attractor_offsets`` and ``route_coverage`` on two parallel straight demonstrations 0.1 apart (span
     sqrt(1 + 0.01)), one route of two steps switching at x = 0.5: the mean end point (0.5, 0.05) is 0.05 from either
     path, the best sample of the step 0.1 (a point of one path is 0.1 from the other), and no sample has both paths
-    within 2 % of the span (0 %); with the second demonstration on top of the first, everything lies on both."""
+    within 2 % of the span (0 %); an attractor on one path is 0.1 from the other and 0 from the nearest; with the
+    second demonstration on top of the first, everything lies on both."""
     import types
 
     import bench_segmentation_seeds as bench
@@ -192,11 +193,14 @@ def test_attractor_checks_of_the_seed_bench_against_closed_forms():
     seg = types.SimpleNamespace(n_steps=2, pieces=pieces, routes=((0, 1),), route_of=torch.tensor([0, 0]),
                                 attractors=torch.tensor([[0.5, 0.05], [1.0, 0.05]], dtype=torch.float64))
     span = math.sqrt(1.01)
-    worst, bound = bench.attractor_offsets(seg, [a, b])
+    worst, bound, nearest = bench.attractor_offsets(seg, [a, b])
     assert worst == pytest.approx(100 * 0.05 / span) and bound == pytest.approx(100 * 0.1 / span)
+    assert nearest == pytest.approx(100 * 0.05 / span)
     assert bench.route_coverage(seg, [a, b]) == 0.0
-    seg.attractors = torch.tensor([[0.5, 0.0], [1.0, 0.0]], dtype=torch.float64)
-    assert bench.attractor_offsets(seg, [a, a.clone()]) == (0.0, 0.0)
+    seg.attractors = torch.tensor([[0.5, 0.0], [1.0, 0.0]], dtype=torch.float64)  # on path a, 0.1 from path b
+    worst, _, nearest = bench.attractor_offsets(seg, [a, b])
+    assert worst == pytest.approx(100 * 0.1 / span) and nearest == 0.0
+    assert bench.attractor_offsets(seg, [a, a.clone()]) == (0.0, 0.0, 0.0)
     assert bench.route_coverage(seg, [a, a.clone()]) == 100.0
 
 
