@@ -555,9 +555,10 @@ def _reference_tick(lib: SkillLibrary, mod: Modulation, arrival: Arrival, x: tor
 @pytest.mark.parametrize("mode", ["none", "large", "small", "full"])
 def test_batched_tick_equals_a_per_row_reference(mode: str, mm3_all) -> None:
     """The optimised batched tick (SubtaskBank densities, step-grouped velocities) against a straightforward
-    per-row tick on 2,000 random states of Multi_Models_3 (all seven demonstrations, 2 routes; a quarter of them new tasks):
-    the same route, progress, step, subtask decision and branch for every row, and the same velocity to rounding,
-    in the large-batch (grouped) path and in the small-batch (dense) one; in mode full the py_trees tick agrees too.
+    per-row tick on 2,000 random states of Multi_Models_3 (all seven demonstrations, 2 routes; a quarter of them
+    new tasks): the same route, progress, step, subtask decision and branch for every row, and the same velocity to
+    rounding, in the large-batch (grouped) path and in the small-batch (dense) one; in mode full the py_trees tick
+    agrees too.
     The velocity tolerance is rounding: the stack's H2 (e^T Q_ij e) and ``renyi_entropy`` (whitened pairwise
     differences) differ by ~2e-10 relative, as they did before this path existed, and the small-scale gain
     exp(H2(x_r) - H2(x)) turns that into a relative error of ~|H2| x 2e-10 in the velocity (3e-9 measured on
