@@ -973,6 +973,8 @@ def segment(
         cuts = [0]
         junc: list[tuple[int, Tensor]] = []
         coarse = grid[i][starts].tolist()  # full-rate sample of every run's first grid point
+        switch_prior = None if not info_dwell else _dwell_switch_prior(
+            path_length(vf, sigma_v_full[i], dts[i]), times[i], grid[i], info_dwell)
         for r in range(1, len(coarse)):
             lo = max(cuts[-1] + 1, (coarse[r - 1] + coarse[r]) // 2)
             hi = min(Ti - 1, (coarse[r] + (coarse[r + 1] if r + 1 < len(coarse) else Ti)) // 2)
@@ -980,9 +982,7 @@ def segment(
                 cuts.append(min(max(coarse[r], cuts[-1] + 1), Ti - 1))
                 junc.append((cuts[-1], xf.new_zeros(0)))
                 continue
-            cut, doubt = _refine_switch(ll, int(values[r - 1]), int(values[r]), lo, hi, k,
-                                        None if not info_dwell else _dwell_switch_prior(
-                                            path_length(vf, sigma_v_full[i], dts[i]), times[i], grid[i], info_dwell))
+            cut, doubt = _refine_switch(ll, int(values[r - 1]), int(values[r]), lo, hi, k, switch_prior)
             cuts.append(cut)
             junc.append((lo, doubt))
         cuts.append(Ti)
