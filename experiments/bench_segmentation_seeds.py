@@ -14,22 +14,41 @@ distance from g_m to the nearest of those demonstrations (:func:`attractor_offse
 path from which all of its demonstrations are within 2 % (:func:`route_coverage`, where any attractor of that route
 could satisfy the check). ``--json`` also writes every seed's step counts, routes, attractor offsets and
 segmentation wall time.
+
+``--parts synthetic set3d`` runs the same seed check on data the sampler seed does not touch (issue 7 asks it of
+"the synthetic families and the 3-D set" as well): ``synthetic``: for every benchmark family of
+:mod:`lfd_torch.segmentation.synthetic` and 1 and 4 demonstrations, ``--cases`` data cases (the data of case c is
+case c of ``bench_segmentation.py``), each segmented with sampler seeds 0..N-1; ``set3d``: the 3-D multi-step set
+of ``experiments/segment_lasa.py`` (``conf/segment_lasa.yaml``: 5 demonstrations, 4 straight min-jerk legs, data
+seed 0). A case is seed-stable when every demonstration gets its most common step count on >= 90 % of the seeds
+(:func:`seed_stable`); the table gives per family the stable cases and the cases whose most common count is the
+true one.
+
+    python experiments/bench_segmentation_seeds.py --parts synthetic set3d --cases 3 --jobs 2 \
+        --json results/tables/bench_segmentation_seeds_synthetic.json
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import json
 import statistics
 import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import torch
 
 from lfd_torch.data import load_lasa
 from lfd_torch.segmentation import segment
 from lfd_torch.segmentation.sampler import SELECTIONS
-from bench_segmentation import segment_options
+from lfd_torch.segmentation.synthetic import FAMILIES, multi_step_demos
+from bench_segmentation import data_seed, segment_options
+
+#: The experiment config that defines the 3-D set (its ``synthetic_3d`` entry, arguments of ``multi_step_demos``).
+SEGMENT_LASA_CONF = Path(__file__).resolve().parents[1] / "conf" / "segment_lasa.yaml"
 
 
 def attractor_offsets(seg, sequences: list[torch.Tensor]) -> tuple[float, float, float]:
@@ -76,9 +95,68 @@ def route_coverage(seg, sequences: list[torch.Tensor], tol: float = 0.02) -> flo
     return out
 
 
+def seed_stable(steps_per_seed: list[list[int]], share: float = 0.9) -> tuple[list[int], bool]:
+    """Most common step count of every demonstration over the seeds, and whether each occurs on at least ``share``
+    of the seeds. steps_per_seed: S seeds x N demonstrations."""
+    per_demo = [collections.Counter(col).most_common(1)[0] for col in zip(*steps_per_seed)]
+    return [c for c, _ in per_demo], all(n >= share * len(steps_per_seed) for _, n in per_demo)
+
+
+def stability_case(demos, seeds: int, selection: str, options: dict) -> dict:
+    """Every demonstration's step count under sampler seeds 0..seeds-1 and the verdict of :func:`seed_stable`."""
+    steps, seconds = [], []
+    for seed in range(seeds):
+        t0 = time.perf_counter()
+        seg = segment(demos, generator=torch.Generator().manual_seed(seed), selection=selection, **options)
+        seconds.append(round(time.perf_counter() - t0, 3))
+        steps.append([len(seg.step_sequence(i)) for i in range(demos.n_demos)])
+    modal, stable = seed_stable(steps)
+    return {"steps_per_seed": steps, "modal_steps": modal, "stable": stable, "seconds": seconds}
+
+
+def _synthetic_case(task: tuple) -> dict:
+    family, n, case, seeds, selection, options = task
+    torch.set_num_threads(1)
+    syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, case)), n)
+    row = {"family": family, "n_demos": n, "case": case, "true_steps": syn.n_steps,
+           **stability_case(syn.demos, seeds, selection, options)}
+    row["modal_is_true"] = all(m == syn.n_steps for m in row["modal_steps"])
+    return row
+
+
+def synthetic_stability(families: list[str], n_demos: list[int], cases: int, seeds: int, selection: str,
+                        options: dict, jobs: int = 1) -> list[dict]:
+    """One row per (family, n_demos, case): :func:`stability_case` plus the true step count (``jobs`` worker
+    processes, one thread each; the rows do not depend on it)."""
+    tasks = [(f, n, c, seeds, selection, options) for f in families for n in n_demos for c in range(cases)]
+    with ProcessPoolExecutor(jobs) if jobs > 1 else contextlib.nullcontext() as pool:
+        rows = []
+        for row in (pool.map(_synthetic_case, tasks) if pool is not None else map(_synthetic_case, tasks)):
+            print(f"    {row['family']} N={row['n_demos']} case={row['case']}: true {row['true_steps']}, "
+                  f"modal {row['modal_steps']}, stable={row['stable']}", flush=True)
+            rows.append(row)
+    return rows
+
+
+def set3d_stability(seeds: int, selection: str, options: dict) -> dict:
+    """:func:`stability_case` on the 3-D set of ``experiments/segment_lasa.py``."""
+    from omegaconf import OmegaConf
+
+    kw = OmegaConf.to_container(OmegaConf.load(SEGMENT_LASA_CONF).synthetic_3d, resolve=True)
+    syn = multi_step_demos(torch.Generator().manual_seed(kw.pop("data_seed")), dim=3, **kw)
+    row = {"true_steps": syn.n_steps, **stability_case(syn.demos, seeds, selection, options)}
+    row["modal_is_true"] = all(m == syn.n_steps for m in row["modal_steps"])
+    return row
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--parts", nargs="+", choices=("lasa", "synthetic", "set3d"), default=["lasa"])
     ap.add_argument("--shapes", nargs="+", default=[f"Multi_Models_{i}" for i in range(1, 5)])
+    ap.add_argument("--families", nargs="+", choices=list(FAMILIES), default=list(FAMILIES))
+    ap.add_argument("--n-demos", nargs="+", type=int, default=[1, 4])
+    ap.add_argument("--cases", type=int, default=3, help="data cases per family and number of demonstrations")
+    ap.add_argument("--jobs", type=int, default=1, help="worker processes for --parts synthetic (one thread each)")
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--selection", choices=list(SELECTIONS), default="map",
                     help="segment(selection=...): how the returned sample is chosen")
@@ -88,11 +166,32 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     options = segment_options(args.segment_option)
     torch.set_num_threads(1)
-    print("| shape | modal steps per demo (seeds of", args.seeds, ") | modal steps per route | distinct route groupings "
-          "| attractor off its demos, % span (best possible), median | off the nearest of them, median "
-          "| route path within 2 % of all its demos, % (min over routes), median |")
-    print("|---|---|---|---|---|---|---|")
     out = {"settings": {"seeds": args.seeds, "selection": args.selection, "options": options}, "shapes": {}}
+    if "synthetic" in args.parts:
+        rows = synthetic_stability(args.families, args.n_demos, args.cases, args.seeds, args.selection, options,
+                                   args.jobs)
+        out["synthetic"] = rows
+        out["settings"]["cases"] = args.cases
+        print("| family | demonstrations | seed-stable cases | most common count = truth |")
+        print("|---|---|---|---|")
+        for family in args.families:
+            for n in args.n_demos:
+                sel = [r for r in rows if r["family"] == family and r["n_demos"] == n]
+                print(f"| {family} | {n} | {sum(r['stable'] for r in sel)} / {len(sel)} | "
+                      f"{sum(r['modal_is_true'] for r in sel)} / {len(sel)} |", flush=True)
+        print(f"all: {sum(r['stable'] for r in rows)} / {len(rows)} seed-stable, "
+              f"{sum(r['modal_is_true'] for r in rows)} / {len(rows)} with the true count", flush=True)
+    if "set3d" in args.parts:
+        out["set3d"] = set3d_stability(args.seeds, args.selection, options)
+        r = out["set3d"]
+        print(f"3-D set: true {r['true_steps']}, most common {r['modal_steps']}, stable={r['stable']}", flush=True)
+    if "lasa" not in args.parts:
+        args.shapes = []
+    else:
+        print("| shape | modal steps per demo (seeds of", args.seeds, ") | modal steps per route | distinct route "
+              "groupings | attractor off its demos, % span (best possible), median | off the nearest of them, median "
+              "| route path within 2 % of all its demos, % (min over routes), median |")
+        print("|---|---|---|---|---|---|---|")
     for shape in args.shapes:
         demos = load_lasa(shape)
         counts = [collections.Counter() for _ in range(demos.n_demos)]

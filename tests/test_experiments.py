@@ -204,6 +204,19 @@ def test_attractor_checks_of_the_seed_bench_against_closed_forms():
     assert bench.route_coverage(seg, [a, a.clone()]) == 100.0
 
 
+def test_seed_stable_is_the_issue_7_rule():
+    """``seed_stable``: every demonstration's most common step count must occur on >= 90 % of the seeds (9 of 10);
+    one demonstration at 8 of 10 makes the case unstable, whatever the others do."""
+    import bench_segmentation_seeds as bench
+
+    steady = [[3, 4]] * 9 + [[4, 4]]
+    assert bench.seed_stable(steady) == ([3, 4], True)
+    shaky = [[3, 4]] * 8 + [[2, 4], [4, 4]]
+    assert bench.seed_stable(shaky) == ([3, 4], False)
+    assert bench.seed_stable([[5]] * 10) == ([5], True)
+    assert bench.seed_stable([[2], [3]] * 5)[1] is False
+
+
 def test_diagnose_segmentation_scores_the_returned_labelling_as_the_sampler_does():
     """The diagnostic's score of the returned labelling is the collapsed score the sampler reports for it (the map
     search's objective), and the true labelling of the same grid gets a finite score of its own."""
