@@ -6,7 +6,10 @@ own collapsed score log p(u, s, F | z) (:meth:`lfd_torch.segmentation.sampler._R
 objective of ``selection="map"``) is evaluated for the returned labelling and for the ground truth on the same grid
 (grid point j of demonstration i labelled with the true step of its full-rate sample; true step m is state m,
 owned by every demonstration). A positive gap (found - true) with fewer steps found means the model prefers
-the merge: the search is not to blame. Prints one row per case.
+the merge: the search is not to blame. Prints one row per case, and with ``--parts`` a second table with the
+gap split into the score's terms (:meth:`lfd_torch.segmentation.sampler._Run._collapsed_score_parts`): the
+emission (field and position evidence of the states), the dwell term, the transitions, the initial state and the
+feature prior, each found - true: which part of the model prefers the returned labelling.
 
     OMP_NUM_THREADS=1 .venv/bin/python experiments/diagnose_segmentation.py --family curved_dwell_2d --seeds 0 3 5 6 \
         --segment-option selection=map position_weight=None straight_weight=0.5
@@ -58,14 +61,16 @@ def score_gap(family: str, seed: int, n_demos: int = 1, **options) -> dict:
     hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
              for k in ("transition_concentration", "stickiness", "feature_mass")]
 
-    def score(s, f):
+    def parts(s, f):
         phases = sampler_module.duration_phases(s[None], run.D)
-        return float(run._collapsed_score(s[None], f[None], phases, *hyper)[0])
+        return {k: float(v[0]) for k, v in run._collapsed_score_parts(s[None], f[None], phases, *hyper).items()}
 
-    found, true = score(res.states, res.features), score(truth, features)
+    found, true = parts(res.states, res.features), parts(truth, features)
     return {"family": family, "seed": seed, "true_steps": M,
             "found_steps": [len(seg.step_sequence(i)) for i in range(run.N)],
-            "score_found": round(found, 1), "score_true": round(true, 1), "gap": round(found - true, 1)}
+            "score_found": round(sum(found.values()), 1), "score_true": round(sum(true.values()), 1),
+            "gap": round(sum(found.values()) - sum(true.values()), 1),
+            "gap_parts": {k: round(found[k] - true[k], 1) for k in found}}
 
 
 def main() -> None:
@@ -75,16 +80,26 @@ def main() -> None:
     ap.add_argument("--n-demos", type=int, default=1)
     ap.add_argument("--segment-option", nargs="+", default=[], metavar="KEY=VALUE",
                     help="segment() keyword arguments, e.g. selection=map position_weight=None")
+    ap.add_argument("--parts", action="store_true", help="also split every gap into the score's terms")
     args = ap.parse_args()
     options = segment_options([o for o in args.segment_option if not o.startswith("selection=")])
     options.update({"selection": o.split("=", 1)[1] for o in args.segment_option if o.startswith("selection=")})
     torch.set_num_threads(1)
     print("| family | seed | true steps | found steps | collapsed score found | true | gap (nats) |")
     print("|---|---|---|---|---|---|---|")
+    rows = []
     for seed in args.seeds:
         r = score_gap(args.family, seed, args.n_demos, **options)
+        rows.append(r)
         print(f"| {r['family']} | {r['seed']} | {r['true_steps']} | {r['found_steps']} | {r['score_found']} | "
               f"{r['score_true']} | {r['gap']} |", flush=True)
+    if args.parts:
+        names = list(rows[0]["gap_parts"])
+        print("\ngap (found - true, nats) by term\n")
+        print("| family | seed | " + " | ".join(names) + " |")
+        print("|---|---|" + "---|" * len(names))
+        for r in rows:
+            print(f"| {r['family']} | {r['seed']} | " + " | ".join(str(r["gap_parts"][k]) for k in names) + " |")
 
 
 if __name__ == "__main__":

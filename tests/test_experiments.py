@@ -219,7 +219,8 @@ def test_seed_stable_is_the_issue_7_rule():
 
 def test_diagnose_segmentation_scores_the_returned_labelling_as_the_sampler_does():
     """The diagnostic's score of the returned labelling is the collapsed score the sampler reports for it (the map
-    search's objective), and the true labelling of the same grid gets a finite score of its own."""
+    search's objective), the true labelling of the same grid gets a finite score of its own, and the gap split into
+    the score's terms adds up to the gap."""
     import diagnose_segmentation as diag
 
     with diag.captured_runs() as runs:
@@ -233,3 +234,5 @@ def test_diagnose_segmentation_scores_the_returned_labelling_as_the_sampler_does
     assert r["score_found"] == pytest.approx(syn_seg.info["collapsed_log_prob"], abs=0.05)
     assert math.isfinite(r["score_true"]) and r["true_steps"] == 5
     assert r["gap"] == pytest.approx(r["score_found"] - r["score_true"], abs=0.11)
+    assert sum(r["gap_parts"].values()) == pytest.approx(r["gap"], abs=0.5)  # the terms add up to the score
+    assert set(r["gap_parts"]) == {"emission", "dwell", "transitions", "initial", "features"}

@@ -1038,11 +1038,19 @@ class _Run:
 
     def _collapsed_score(self, s: Tensor, F: Tensor, phase: Tensor, alpha: Tensor, kappa: Tensor,
                          mass: Tensor) -> Tensor:
-        """(B,) log p(u, s, F | z) with the fields, their noise and the transition weights integrated out.
+        """(B,) log p(u, s, F | z) with the fields, their noise and the transition weights integrated out: the sum
+        of :meth:`_collapsed_score_parts`. s, phase (B, N, T) long, F (B, N, K) bool; alpha, kappa, mass (B,).
+        Reported with the returned sample (``SamplerResult.collapsed_log_prob``); the objective of
+        ``selection="map"`` (module docstring, "Which sample")."""
+        return sum(self._collapsed_score_parts(s, F, phase, alpha, kappa, mass).values())
 
-        s, phase (B, N, T) long, F (B, N, K) bool; alpha, kappa, mass (B,). Reported with the returned sample
-        (``SamplerResult.collapsed_log_prob``); the sample is chosen by the joint log probability (module docstring,
-        "Which sample"). Terms: the IBP prior of F; per sequence the
+    def _collapsed_score_parts(self, s: Tensor, F: Tensor, phase: Tensor, alpha: Tensor, kappa: Tensor,
+                               mass: Tensor) -> dict[str, Tensor]:
+        """The terms of :meth:`_collapsed_score`, each (B,): "emission" (the states' field evidence with the
+        Student-t profile, the reliability Jacobian and the tempered position evidence), "dwell" (0 without the
+        dwell term), "transitions", "initial" and "features" (the IBP prior of F).
+
+        Terms: the IBP prior of F; per sequence the
         uniform initial state and the Dirichlet-multinomial of the free transitions,
         sum_j [log Gamma(A_j) - log Gamma(A_j + n_j) + sum_k (log Gamma(a_jk + n_jk) - log Gamma(a_jk))] with
         a_jk = alpha + kappa delta_jk over the owned features; per state the MNIW evidence of its samples
@@ -1058,6 +1066,7 @@ class _Run:
         z, u = o.z.reshape(1, N * T, -1), o.u.reshape(1, N * T, -1)
         w = o.w.reshape(1, N * T).expand(B, N * T)
         lp = 0.5 * d * (torch.log(o.w.clamp_min(1e-300)) * valid).sum().expand(B)
+        parts = {}
         nu = self.cfg.robust_dof
         if nu is not None:
             lam = self._profile_scales(z, u, w, onehot)
@@ -1070,12 +1079,15 @@ class _Run:
                                          self.cfg.straight_weight)[0].sum(-1)
         if self.tau > 0:  # the tempered NIW evidence of each state's positions
             lp = lp + niw_log_marginal_likelihood(self.pos_prior, *self._position_statistics(onehot)).sum(-1)
-        if self.dwell is not None:
-            lp = lp + dwell_evidence(self.dwell_prior, self.dwell, self.dwell_mask, phase)
+        parts["emission"] = lp
+        parts["dwell"] = (lp.new_zeros(B) if self.dwell is None
+                          else dwell_evidence(self.dwell_prior, self.dwell, self.dwell_mask, phase))
         counts = transition_counts(s, self.lengths.expand(B, N), K, free_transitions(phase, self.D)).to(self.dtype)
-        lp = lp + dirichlet_multinomial_log_prob(counts, F, alpha.view(B, 1, 1, 1), kappa.view(B, 1, 1, 1)).sum(-1)
-        lp = lp - torch.log(F.sum(-1).clamp_min(1).to(self.dtype)).sum(-1)  # uniform initial state
-        return lp + ibp_log_prior(F, mass, self.cfg.feature_concentration).to(self.dtype)
+        parts["transitions"] = dirichlet_multinomial_log_prob(counts, F, alpha.view(B, 1, 1, 1),
+                                                              kappa.view(B, 1, 1, 1)).sum(-1)
+        parts["initial"] = -torch.log(F.sum(-1).clamp_min(1).to(self.dtype)).sum(-1)  # uniform initial state
+        parts["features"] = ibp_log_prior(F, mass, self.cfg.feature_concentration).to(self.dtype).expand(B)
+        return parts
 
     # ------------------------------------------------------------------ driver
     def sample(self) -> SamplerResult:
