@@ -13,6 +13,8 @@ feature prior, each found - true: which part of the model prefers the returned l
 
     OMP_NUM_THREADS=1 .venv/bin/python experiments/diagnose_segmentation.py --family curved_dwell_2d --seeds 0 3 5 6 \
         --segment-option selection=map position_weight=None straight_weight=0.5
+    OMP_NUM_THREADS=1 .venv/bin/python experiments/diagnose_segmentation.py --parts \
+        --case straight_const_3d 4 1 --case scoop_dwell_3d 1 7 --json gaps.json
 """
 
 from __future__ import annotations
@@ -75,31 +77,51 @@ def score_gap(family: str, seed: int, n_demos: int = 1, **options) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--family", required=True, choices=list(FAMILIES))
+    ap.add_argument("--family", choices=list(FAMILIES))
     ap.add_argument("--seeds", nargs="+", type=int, default=[0])
     ap.add_argument("--n-demos", type=int, default=1)
     ap.add_argument("--segment-option", nargs="+", default=[], metavar="KEY=VALUE",
                     help="segment() keyword arguments, e.g. selection=map position_weight=None")
     ap.add_argument("--parts", action="store_true", help="also split every gap into the score's terms")
+    ap.add_argument("--case", nargs=3, action="append", default=[], metavar=("FAMILY", "N_DEMOS", "SEED"),
+                    help="a case to score (repeatable; replaces --family, --n-demos and --seeds)")
+    ap.add_argument("--json", default=None, help="write every case's row (scores, gap, its terms) to this JSON file")
     args = ap.parse_args()
+    if args.case:
+        for family, _, _ in args.case:
+            if family not in FAMILIES:
+                ap.error(f"unknown family {family!r}")
+        cases = [(f, int(n), int(seed)) for f, n, seed in args.case]
+    elif args.family is None:
+        ap.error("give --family (with --seeds, --n-demos) or --case")
+    else:
+        cases = [(args.family, args.n_demos, seed) for seed in args.seeds]
     options = segment_options([o for o in args.segment_option if not o.startswith("selection=")])
     options.update({"selection": o.split("=", 1)[1] for o in args.segment_option if o.startswith("selection=")})
     torch.set_num_threads(1)
-    print("| family | seed | true steps | found steps | collapsed score found | true | gap (nats) |")
-    print("|---|---|---|---|---|---|---|")
+    print("| family | demonstrations | seed | true steps | found steps | collapsed score found | true | gap (nats) |")
+    print("|---|---|---|---|---|---|---|---|")
     rows = []
-    for seed in args.seeds:
-        r = score_gap(args.family, seed, args.n_demos, **options)
+    for family, n_demos, seed in cases:
+        r = {"n_demos": n_demos, **score_gap(family, seed, n_demos, **options)}
         rows.append(r)
-        print(f"| {r['family']} | {r['seed']} | {r['true_steps']} | {r['found_steps']} | {r['score_found']} | "
-              f"{r['score_true']} | {r['gap']} |", flush=True)
+        print(f"| {r['family']} | {n_demos} | {r['seed']} | {r['true_steps']} | {r['found_steps']} | "
+              f"{r['score_found']} | {r['score_true']} | {r['gap']} |", flush=True)
     if args.parts:
         names = list(rows[0]["gap_parts"])
         print("\ngap (found - true, nats) by term\n")
-        print("| family | seed | " + " | ".join(names) + " |")
-        print("|---|---|" + "---|" * len(names))
+        print("| family | demonstrations | seed | " + " | ".join(names) + " |")
+        print("|---|---|---|" + "---|" * len(names))
         for r in rows:
-            print(f"| {r['family']} | {r['seed']} | " + " | ".join(str(r["gap_parts"][k]) for k in names) + " |")
+            print(f"| {r['family']} | {r['n_demos']} | {r['seed']} | "
+                  + " | ".join(str(r["gap_parts"][k]) for k in names) + " |")
+    if args.json:
+        import json
+
+        from lfd_torch.store import atomic_write, git_sha
+
+        out = {"options": options, "git_sha": git_sha(), "cases": rows}
+        atomic_write(args.json, lambda p: p.write_text(json.dumps(out, indent=1)))
 
 
 if __name__ == "__main__":
