@@ -27,19 +27,20 @@ but an Occam factor of about 1/2 log(1 + n_starts v_delta), paid once; where the
 switch at a long dwell gains and a switch at speed pays about delta^2 / (2 sigma^2) nats. The model, not a
 threshold, decides what a long dwell is.
 
-Known limit (measured, not fixed): at constant speed c is not independent of the corners. The path length comes
-from least-squares velocities (:func:`~lfd_torch.segmentation.segmentation.scale_velocities`), and a window that
+Known limit (measured, not fixed): at constant speed c is not independent of the corners. The path length comes from
+least-squares velocities (:func:`~lfd_torch.segmentation.segmentation.scale_velocities`), and a window that
 straddles a corner measures the chord, about cos(theta / 2) of the speed, so the grid interval at a sharp corner
 takes longer: c = 0.3-0.4 at 135-degree corners, 0.1-0.2 at 80 degrees, about 0 at 40 degrees
 (``straight_const_3d``, data cases 3 and 8, 4 demonstrations). delta is then learned from the sharp corners
-(0.12-0.21) and a true switch at a mild corner pays for its c ~ 0: 2-12 nats against the true labelling in 6 of
-the 13 missed cases scored by ``experiments/diagnose_segmentation.py --parts``. Two corrections were tried and not
-kept: the grid's crossing times interpolated between samples (the sample times round every gap to whole samples,
-noise of about log(k / (k - 1)) in c; no change of any count on 60 single-demonstration cases of six families), and
-the turning 1 - u_{t-1} . u_t of the grid directions as a third regressor of c (delta falls to ~0 at constant speed
-and the dwell part of the gap to 0.2-0.8 nats, but at dwelling corners the turn and the rest coincide, the turn
-takes the rest's evidence, and every switch fell from 8 to 7 of 10 on scoop_dwell_3d and from 9 to 7 on
-curved_dwell_3d, one demonstration; one-off patches, not stored).
+(0.12-0.21) and a true switch at a mild corner pays for its c ~ 0: 2.2-12.1 nats against the true labelling in 9 of
+the 23 missed synthetic cases scored by ``experiments/diagnose_segmentation.py --parts``
+(results/tables/diagnose_segmentation_missed.json). Two corrections were tried and not kept: the grid's crossing
+times interpolated between samples (the sample times round every gap to whole samples, up to 1 / k of a gap at each
+end; the same every-switch count in each of six families, 60 single demonstrations), and the turning 1 - u_(t-1).u_t
+of the grid directions as a third regressor of c (delta falls to ~0 at constant speed and the dwell part of the gap
+to 0.2-0.8 nats, but at dwelling corners the turn and the rest coincide, the turn takes the rest's evidence, and
+every switch fell from 8 to 7 of 10 on scoop_dwell_3d and from 9 to 7 on curved_dwell_3d, one demonstration; one-off
+patches, not stored).
 
 It is an emission of the phase-expanded HMM (phase 0: the first point of a run, any other phase: inside a run), so
 every move stays exact: the forward filter and FFBS add log N(c_t; mu + delta, sigma^2) to the phase-0 states and
