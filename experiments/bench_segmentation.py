@@ -46,6 +46,7 @@ each feature z-scored; the finite-difference velocities of the data are mostly n
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import json
 import logging
@@ -55,6 +56,7 @@ import time
 import warnings
 import zlib
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -284,37 +286,49 @@ def data_seed(family: str, seed: int) -> int:
     return (zlib.crc32(family.encode()) + 7919 * seed) % (2**31)
 
 
+def _synthetic_case(task: tuple[str, int, int, tuple[str, ...]]) -> list[dict[str, Any]]:
+    """The rows of one (family, n_demos, seed) case, one per method."""
+    family, n, seed, methods = task
+    torch.set_num_threads(1)
+    syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n)
+    rows = []
+    for method in methods:
+        t0 = time.perf_counter()
+        error = None
+        try:
+            found, extra = DETECTORS[method](syn, seed)
+        except Exception as exc:  # a failing method detects nothing; recorded
+            found, extra, error = [[] for _ in range(n)], {}, f"{type(exc).__name__}: {exc}"
+        seconds = time.perf_counter() - t0
+        rows.append({"part": "synthetic", "method": method, "family": family, "n_demos": n, "seed": seed,
+                     **score_case(syn.switch_times, syn.demos.lengths, found), "seconds": seconds,
+                     "true_switches": syn.switch_times.tolist(), "found_switches": found,
+                     "lengths": syn.demos.lengths.tolist(), "noise_fraction": syn.noise / syn.span,
+                     "error": error, **extra})  # fmt: skip
+    return rows
+
+
 def synthetic_study(
     seeds: int = 10,
     methods: tuple[str, ...] = ("segment", "ruptures", "hmmlearn"),
     families: tuple[str, ...] | None = None,
     n_demos: tuple[int, ...] = (1, 4),
+    jobs: int = 1,
 ) -> list[dict[str, Any]]:
-    """One row per (method, family, n_demos, seed); the data of a (family, seed) share the nominal path."""
-    rows = []
+    """One row per (method, family, n_demos, seed); the data of a (family, seed) share the nominal path. ``jobs``
+    worker processes (one thread each) share the cases; the rows, in the same order, do not depend on it (the wall
+    times do: with two workers on two cores each case runs as it would alone)."""
     families = tuple(FAMILIES) if families is None else families
-    for family in families:
-        for n in n_demos:
-            for seed in range(seeds):
-                syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n)
-                for method in methods:
-                    t0 = time.perf_counter()
-                    error = None
-                    try:
-                        found, extra = DETECTORS[method](syn, seed)
-                    except Exception as exc:  # a failing method detects nothing; recorded
-                        found, extra, error = [[] for _ in range(n)], {}, f"{type(exc).__name__}: {exc}"
-                    seconds = time.perf_counter() - t0
-                    row = {"part": "synthetic", "method": method, "family": family, "n_demos": n, "seed": seed,
-                           **score_case(syn.switch_times, syn.demos.lengths, found), "seconds": seconds,
-                           "true_switches": syn.switch_times.tolist(), "found_switches": found,
-                           "lengths": syn.demos.lengths.tolist(), "noise_fraction": syn.noise / syn.span,
-                           "error": error, **extra}  # fmt: skip
-                    rows.append(row)
-                    print(f"{method:>11} {family:>22} N={n} seed={seed}: steps {row['true_steps']} -> "
-                          f"{row['found_steps']}  exact={int(row['exact_steps'])} all={int(row['all_switches'])} "
-                          f"med_err={row['median_error_pct']:.1f}% {seconds:.2f}s"
-                          + (f"  [{error}]" if error else ""), flush=True)  # fmt: skip
+    tasks = [(family, n, seed, methods) for family in families for n in n_demos for seed in range(seeds)]
+    rows = []
+    with ProcessPoolExecutor(jobs) if jobs > 1 else contextlib.nullcontext() as pool:
+        for case_rows in (pool.map(_synthetic_case, tasks) if pool is not None else map(_synthetic_case, tasks)):
+            for row in case_rows:
+                rows.append(row)
+                print(f"{row['method']:>11} {row['family']:>22} N={row['n_demos']} seed={row['seed']}: steps "
+                      f"{row['true_steps']} -> {row['found_steps']}  exact={int(row['exact_steps'])} "
+                      f"all={int(row['all_switches'])} med_err={row['median_error_pct']:.1f}% {row['seconds']:.2f}s"
+                      + (f"  [{row['error']}]" if row["error"] else ""), flush=True)  # fmt: skip
     return rows
 
 
@@ -373,6 +387,7 @@ def main() -> None:
                         choices=["lasa", "scaling", "synthetic", "membership"])  # fmt: skip
     parser.add_argument("--shapes", nargs="+", default=list(LASA_SHAPES))
     parser.add_argument("--seeds", type=int, default=10, help="synthetic cases per family and number of demos")
+    parser.add_argument("--jobs", type=int, default=1, help="worker processes for the synthetic part (one thread each)")
     parser.add_argument("--method", nargs="+", default=["segment", "ruptures", "hmmlearn"], choices=METHODS,
                         help="methods of the synthetic part")  # fmt: skip
     parser.add_argument("--families", nargs="+", default=list(FAMILIES), choices=list(FAMILIES))
@@ -403,7 +418,7 @@ def main() -> None:
               f"other_max median {statistics.median(r['other_max'] for r in rows_m):.3f}, "
               f"max {max(r['other_max'] for r in rows_m):.3f}")  # fmt: skip
     if "synthetic" in args.parts:
-        rows = synthetic_study(args.seeds, tuple(args.method), tuple(args.families), tuple(args.n_demos))
+        rows = synthetic_study(args.seeds, tuple(args.method), tuple(args.families), tuple(args.n_demos), args.jobs)
         summary = summarize_synthetic(rows)
         result["synthetic"] = rows
         result["synthetic_summary"] = summary

@@ -204,6 +204,18 @@ def test_attractor_checks_of_the_seed_bench_against_closed_forms():
     assert bench.route_coverage(seg, [a, a.clone()]) == 100.0
 
 
+def test_synthetic_study_rows_do_not_depend_on_the_number_of_workers():
+    """``synthetic_study(jobs=2)`` (worker processes) gives the rows of the serial loop, in the same order (only
+    the wall times differ)."""
+    import bench_segmentation as bench
+
+    kw = dict(seeds=2, methods=("segment",), families=("straight_dwell_2d",), n_demos=(1,))
+    serial, pooled = bench.synthetic_study(**kw), bench.synthetic_study(**kw, jobs=2)
+    assert len(serial) == 2
+    assert [{k: v for k, v in r.items() if k != "seconds"} for r in serial] == \
+        [{k: v for k, v in r.items() if k != "seconds"} for r in pooled]
+
+
 def test_seed_stable_is_the_issue_7_rule():
     """``seed_stable``: every demonstration's most common step count must occur on >= 90 % of the seeds (9 of 10);
     one demonstration at 8 of 10 makes the case unstable, whatever the others do."""
