@@ -856,7 +856,7 @@ def segment(
     n_initial_features: int = 4,
     birth_window: float = 0.1,
     birth_prior_mix: float = 0.1,
-    resample_hyperparameters: bool = False,
+    resample_hyperparameters: bool = True,
     selection: str = "map",
     progress: bool = False,
 ) -> Segmentation:
@@ -883,6 +883,11 @@ def segment(
         dwell_cue: the model also explains the time spent between grid points, with a learned shift at the first
             point of a run (:mod:`.dwell`): a pause marks a step boundary as far as the data show it. Needs a
             minimum duration of at least 2 grid points.
+        resample_hyperparameters: also sample the feature mass gamma, the transition concentration alpha and the
+            stickiness kappa (their given values are the chains' starting points; :mod:`.sampler`, move 5): how
+            often a demonstration switches is learned from it, not fixed; with the fixed values of the sampler
+            class's default one single scoop of the synthetic benchmark missed a switch that the map search scores
+            higher (``results/tables/bench_segmentation_segment_resample.json`` before this became the default).
         Remaining keyword arguments: see :class:`BetaProcessHMMSampler`; their accepted ranges (upper bounds where
             a hyperparameter scales the cost, with the measured cost) are
             :data:`~lfd_torch.segmentation.sampler.HYPERPARAMETER_RANGES`.
