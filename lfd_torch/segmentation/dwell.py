@@ -32,8 +32,8 @@ least-squares velocities (:func:`~lfd_torch.segmentation.segmentation.scale_velo
 straddles a corner measures the chord, about cos(theta / 2) of the speed, so the grid interval at a sharp corner
 takes longer: c = 0.3-0.4 at 135-degree corners, 0.1-0.2 at 80 degrees, about 0 at 40 degrees
 (``straight_const_3d``, data cases 3 and 8, 4 demonstrations). delta is then learned from the sharp corners
-(0.12-0.21) and a true switch at a mild corner pays for its c ~ 0: 2.2-12.1 nats against the true labelling in 9 of
-the 23 missed synthetic cases scored by ``experiments/diagnose_segmentation.py --parts``
+(0.12-0.21) and a true switch at a mild corner pays for its c ~ 0: 2.2-12.1 nats against the true labelling in 8 of
+the 22 missed synthetic cases scored by ``experiments/diagnose_segmentation.py --parts``
 (results/tables/diagnose_segmentation_missed.json). Two corrections were tried and not kept: the grid's crossing
 times interpolated between samples (the sample times round every gap to whole samples, up to 1 / k of a gap at each
 end; the same every-switch count in each of six families, 60 single demonstrations), and the turning 1 - u_(t-1).u_t

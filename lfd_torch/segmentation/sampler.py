@@ -26,11 +26,14 @@ move 2 is batched over sequences too (unique features of different sequences do 
 and sequences. The chain with the best joint log probability (over the samples after burn-in) is returned.
 
 Which sample (``selection``), among the sweeps of every chain after burn-in. :func:`lfd_torch.segmentation.segment`
-defaults to "map" with the position term, straight states and the dwell term (sections below; the sampler class
-itself to "joint" with directions alone). The figures in this docstring that name no options were measured with the
-earlier defaults of ``segment`` (``selection="joint", position_weight=0, straight_weight=0, dwell_cue=False``):
-their commands reproduce them with ``--segment-option position_weight=0 straight_weight=0 dwell_cue=False`` (and
-``--selection joint`` for ``bench_segmentation_seeds.py`` and ``bench_scooping_segmentation.py``).
+defaults to "map" with the position term, straight states, the dwell term and learned gamma, alpha and kappa (move
+5; sections below; the sampler class itself to "joint" with directions alone and fixed values). The figures in this
+docstring that name no options were measured with the earlier defaults of ``segment`` (``selection="joint",
+position_weight=0, straight_weight=0, dwell_cue=False, resample_hyperparameters=False``): their commands reproduce
+them with ``--segment-option position_weight=0 straight_weight=0 dwell_cue=False resample_hyperparameters=False``
+(and ``--selection joint`` for ``bench_segmentation_seeds.py`` and ``bench_scooping_segmentation.py``); figures
+of the map search, the position term, straight states or the dwell term were measured with fixed values
+(``resample_hyperparameters=False``).
     "joint": the highest joint log probability. Its collapsed score (every continuous parameter integrated
         out: MNIW evidence of each state's directions, Dirichlet-multinomial sticky transitions, IBP prior) is
         reported too.
