@@ -885,9 +885,9 @@ def segment(
             minimum duration of at least 2 grid points.
         resample_hyperparameters: also sample the feature mass gamma, the transition concentration alpha and the
             stickiness kappa (their given values are the chains' starting points; :mod:`.sampler`, move 5): how
-            often a demonstration switches is learned from it, not fixed; with the fixed values of the sampler
-            class's default one single scoop of the synthetic benchmark missed a switch that the map search scores
-            higher (``results/tables/bench_segmentation_segment_resample.json`` before this became the default).
+            often a demonstration switches is learned from it, not fixed. Against the fixed values (the sampler
+            class's default) on the synthetic benchmark: one more single scoop with pauses segmented right (a
+            search failure with them), one single constant-speed scoop less seed-stable (README, segmentation).
         Remaining keyword arguments: see :class:`BetaProcessHMMSampler`; their accepted ranges (upper bounds where
             a hyperparameter scales the cost, with the measured cost) are
             :data:`~lfd_torch.segmentation.sampler.HYPERPARAMETER_RANGES`.
