@@ -46,7 +46,6 @@ each feature z-scored; the finite-difference velocities of the data are mostly n
 from __future__ import annotations
 
 import argparse
-import contextlib
 import functools
 import json
 import logging
@@ -286,6 +285,15 @@ def data_seed(family: str, seed: int) -> int:
     return (zlib.crc32(family.encode()) + 7919 * seed) % (2**31)
 
 
+def map_cases(fn: Callable[[Any], Any], tasks: list[Any], jobs: int = 1):
+    """fn over tasks, in order: in the calling process (jobs = 1) or in ``jobs`` worker processes. Yields results."""
+    if jobs <= 1:
+        yield from map(fn, tasks)
+        return
+    with ProcessPoolExecutor(jobs) as pool:
+        yield from pool.map(fn, tasks)
+
+
 def _synthetic_case(task: tuple[str, int, int, tuple[str, ...]]) -> list[dict[str, Any]]:
     """The rows of one (family, n_demos, seed) case, one per method."""
     family, n, seed, methods = task
@@ -321,14 +329,13 @@ def synthetic_study(
     families = tuple(FAMILIES) if families is None else families
     tasks = [(family, n, seed, methods) for family in families for n in n_demos for seed in range(seeds)]
     rows = []
-    with ProcessPoolExecutor(jobs) if jobs > 1 else contextlib.nullcontext() as pool:
-        for case_rows in (pool.map(_synthetic_case, tasks) if pool is not None else map(_synthetic_case, tasks)):
-            for row in case_rows:
-                rows.append(row)
-                print(f"{row['method']:>11} {row['family']:>22} N={row['n_demos']} seed={row['seed']}: steps "
-                      f"{row['true_steps']} -> {row['found_steps']}  exact={int(row['exact_steps'])} "
-                      f"all={int(row['all_switches'])} med_err={row['median_error_pct']:.1f}% {row['seconds']:.2f}s"
-                      + (f"  [{row['error']}]" if row["error"] else ""), flush=True)  # fmt: skip
+    for case_rows in map_cases(_synthetic_case, tasks, jobs):
+        for row in case_rows:
+            rows.append(row)
+            print(f"{row['method']:>11} {row['family']:>22} N={row['n_demos']} seed={row['seed']}: steps "
+                  f"{row['true_steps']} -> {row['found_steps']}  exact={int(row['exact_steps'])} "
+                  f"all={int(row['all_switches'])} med_err={row['median_error_pct']:.1f}% {row['seconds']:.2f}s"
+                  + (f"  [{row['error']}]" if row["error"] else ""), flush=True)  # fmt: skip
     return rows
 
 

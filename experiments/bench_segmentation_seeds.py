@@ -32,11 +32,9 @@ from __future__ import annotations
 
 import argparse
 import collections
-import contextlib
 import json
 import statistics
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import torch
@@ -45,7 +43,7 @@ from lfd_torch.data import load_lasa
 from lfd_torch.segmentation import segment
 from lfd_torch.segmentation.sampler import SELECTIONS
 from lfd_torch.segmentation.synthetic import FAMILIES, multi_step_demos
-from bench_segmentation import data_seed, segment_options
+from bench_segmentation import data_seed, map_cases, segment_options
 
 #: The experiment config that defines the 3-D set (its ``synthetic_3d`` entry, arguments of ``multi_step_demos``).
 SEGMENT_LASA_CONF = Path(__file__).resolve().parents[1] / "conf" / "segment_lasa.yaml"
@@ -102,8 +100,9 @@ def seed_stable(steps_per_seed: list[list[int]], share: float = 0.9) -> tuple[li
     return [c for c, _ in per_demo], all(n >= share * len(steps_per_seed) for _, n in per_demo)
 
 
-def stability_case(demos, seeds: int, selection: str, options: dict) -> dict:
-    """Every demonstration's step count under sampler seeds 0..seeds-1 and the verdict of :func:`seed_stable`."""
+def stability_case(demos, true_steps: int, seeds: int, selection: str, options: dict) -> dict:
+    """Every demonstration's step count under sampler seeds 0..seeds-1, the verdict of :func:`seed_stable` and
+    whether every most common count is ``true_steps``."""
     steps, seconds = [], []
     for seed in range(seeds):
         t0 = time.perf_counter()
@@ -111,17 +110,16 @@ def stability_case(demos, seeds: int, selection: str, options: dict) -> dict:
         seconds.append(round(time.perf_counter() - t0, 3))
         steps.append([len(seg.step_sequence(i)) for i in range(demos.n_demos)])
     modal, stable = seed_stable(steps)
-    return {"steps_per_seed": steps, "modal_steps": modal, "stable": stable, "seconds": seconds}
+    return {"true_steps": true_steps, "steps_per_seed": steps, "modal_steps": modal, "stable": stable,
+            "modal_is_true": all(m == true_steps for m in modal), "seconds": seconds}
 
 
 def _synthetic_case(task: tuple) -> dict:
     family, n, case, seeds, selection, options = task
     torch.set_num_threads(1)
     syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, case)), n)
-    row = {"family": family, "n_demos": n, "case": case, "true_steps": syn.n_steps,
-           **stability_case(syn.demos, seeds, selection, options)}
-    row["modal_is_true"] = all(m == syn.n_steps for m in row["modal_steps"])
-    return row
+    return {"family": family, "n_demos": n, "case": case,
+            **stability_case(syn.demos, syn.n_steps, seeds, selection, options)}
 
 
 def synthetic_stability(families: list[str], n_demos: list[int], cases: int, seeds: int, selection: str,
@@ -129,12 +127,11 @@ def synthetic_stability(families: list[str], n_demos: list[int], cases: int, see
     """One row per (family, n_demos, case): :func:`stability_case` plus the true step count (``jobs`` worker
     processes, one thread each; the rows do not depend on it)."""
     tasks = [(f, n, c, seeds, selection, options) for f in families for n in n_demos for c in range(cases)]
-    with ProcessPoolExecutor(jobs) if jobs > 1 else contextlib.nullcontext() as pool:
-        rows = []
-        for row in (pool.map(_synthetic_case, tasks) if pool is not None else map(_synthetic_case, tasks)):
-            print(f"    {row['family']} N={row['n_demos']} case={row['case']}: true {row['true_steps']}, "
-                  f"modal {row['modal_steps']}, stable={row['stable']}", flush=True)
-            rows.append(row)
+    rows = []
+    for row in map_cases(_synthetic_case, tasks, jobs):
+        print(f"    {row['family']} N={row['n_demos']} case={row['case']}: true {row['true_steps']}, "
+              f"modal {row['modal_steps']}, stable={row['stable']}", flush=True)
+        rows.append(row)
     return rows
 
 
@@ -144,9 +141,7 @@ def set3d_stability(seeds: int, selection: str, options: dict) -> dict:
 
     kw = OmegaConf.to_container(OmegaConf.load(SEGMENT_LASA_CONF).synthetic_3d, resolve=True)
     syn = multi_step_demos(torch.Generator().manual_seed(kw.pop("data_seed")), dim=3, **kw)
-    row = {"true_steps": syn.n_steps, **stability_case(syn.demos, seeds, selection, options)}
-    row["modal_is_true"] = all(m == syn.n_steps for m in row["modal_steps"])
-    return row
+    return stability_case(syn.demos, syn.n_steps, seeds, selection, options)
 
 
 def main(argv: list[str] | None = None) -> None:
