@@ -54,7 +54,7 @@ def labelling_evidence(seg, demos, labels: torch.Tensor, direction_noise: float 
     k = seg.info["strides"][0]
     dt = float(demos.times[0, 1] - demos.times[0, 0])
     v = scale_velocities(x, k, dt)
-    sv = velocity_noise(seg.info["position_noise"], x.shape[0], k, dt).to(x)
+    sv = velocity_noise(seg.info["position_noise"], x.shape[0], k, dt, rho=seg.info["noise_correlation"]).to(x)
     floor = 1e-3 * float(v.norm(dim=-1).median())
     obs = field_observations(x[grid][None], v[grid][None], torch.ones(1, grid.numel(), dtype=torch.bool),
                              velocity_noise=sv[grid][None], direction_noise=direction_noise, speed_floor=floor)

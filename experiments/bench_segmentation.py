@@ -41,6 +41,14 @@ each feature z-scored; the finite-difference velocities of the data are mostly n
     OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts synthetic --method ruptures hmmlearn
     OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts lasa scaling --json out.json
     OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts membership --seeds 2
+
+``--noise-correlation RHO`` replaces each case's white noise by AR(1) noise of lag-one correlation RHO and the same
+level (:func:`lfd_torch.segmentation.synthetic.with_correlated_noise`): the same paths under noise that is not
+white at the sampling rate (a filtered sensor, a tremor), a check the families were not tuned on. With
+``--segment-option noise_model=white`` the segmentation assumes white noise (the earlier default):
+
+    OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts synthetic --method segment \
+        --noise-correlation 0.5 --n-demos 1 --jobs 2 --json results/tables/bench_segmentation_ar1.json
 """
 
 from __future__ import annotations
@@ -63,7 +71,7 @@ import torch
 
 from lfd_torch.data import load_lasa
 from lfd_torch.segmentation import segment
-from lfd_torch.segmentation.synthetic import FAMILIES, SyntheticSteps
+from lfd_torch.segmentation.synthetic import FAMILIES, SyntheticSteps, with_correlated_noise
 
 LASA_SHAPES = ("Multi_Models_1", "Multi_Models_2", "Multi_Models_3", "Multi_Models_4", "Angle", "Sshape")
 METHODS = ("segment", "segment_joint", "segment_collapsed", "segment_modal", "segment_map", "ruptures", "ruptures_l2",
@@ -294,11 +302,14 @@ def map_cases(fn: Callable[[Any], Any], tasks: list[Any], jobs: int = 1):
         yield from pool.map(fn, tasks)
 
 
-def _synthetic_case(task: tuple[str, int, int, tuple[str, ...]]) -> list[dict[str, Any]]:
-    """The rows of one (family, n_demos, seed) case, one per method."""
-    family, n, seed, methods = task
+def _synthetic_case(task: tuple[str, int, int, tuple[str, ...], float | None]) -> list[dict[str, Any]]:
+    """The rows of one (family, n_demos, seed) case, one per method (AR(1) noise of lag-one correlation rho instead
+    of the family's white noise when rho is not None, :func:`with_correlated_noise`, seeded data seed + 1)."""
+    family, n, seed, methods, rho = task
     torch.set_num_threads(1)
     syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n)
+    if rho is not None:
+        syn = with_correlated_noise(syn, rho, torch.Generator().manual_seed(data_seed(family, seed) + 1))
     rows = []
     for method in methods:
         t0 = time.perf_counter()
@@ -322,12 +333,14 @@ def synthetic_study(
     families: tuple[str, ...] | None = None,
     n_demos: tuple[int, ...] = (1, 4),
     jobs: int = 1,
+    noise_correlation: float | None = None,
 ) -> list[dict[str, Any]]:
     """One row per (method, family, n_demos, seed); the data of a (family, seed) share the nominal path. ``jobs``
     worker processes (one thread each) share the cases; the rows, in the same order, do not depend on it (the wall
-    times do: with two workers on two cores each case runs as it would alone)."""
+    times do: with two workers on two cores each case runs as it would alone). ``noise_correlation``: AR(1) noise
+    of that lag-one correlation, same marginal level, instead of each family's white noise."""
     families = tuple(FAMILIES) if families is None else families
-    tasks = [(family, n, seed, methods) for family in families for n in n_demos for seed in range(seeds)]
+    tasks = [(family, n, seed, methods, noise_correlation) for family in families for n in n_demos for seed in range(seeds)]
     rows = []
     for case_rows in map_cases(_synthetic_case, tasks, jobs):
         for row in case_rows:
@@ -399,6 +412,9 @@ def main() -> None:
                         help="methods of the synthetic part")  # fmt: skip
     parser.add_argument("--families", nargs="+", default=list(FAMILIES), choices=list(FAMILIES))
     parser.add_argument("--n-demos", nargs="+", type=int, default=[1, 4])
+    parser.add_argument("--noise-correlation", type=float, default=None, metavar="RHO",
+                        help="synthetic part: AR(1) position noise of this lag-one correlation (same level) instead "
+                             "of the families' white noise")  # fmt: skip
     parser.add_argument("--json", type=str, default=None, help="write all rows to this JSON file")
     parser.add_argument("--segment-option", nargs="+", default=[], metavar="KEY=VALUE",
                         help="segment() keyword arguments of the segment methods (numbers, or None), e.g. extra_dof=2")
@@ -425,13 +441,15 @@ def main() -> None:
               f"other_max median {statistics.median(r['other_max'] for r in rows_m):.3f}, "
               f"max {max(r['other_max'] for r in rows_m):.3f}")  # fmt: skip
     if "synthetic" in args.parts:
-        rows = synthetic_study(args.seeds, tuple(args.method), tuple(args.families), tuple(args.n_demos), args.jobs)
+        rows = synthetic_study(args.seeds, tuple(args.method), tuple(args.families), tuple(args.n_demos), args.jobs,
+                               args.noise_correlation)
         summary = summarize_synthetic(rows)
         result["synthetic"] = rows
         result["synthetic_summary"] = summary
         result["synthetic_settings"] = {
             "tolerance": TOLERANCE, "savgol_window": SAVGOL_WINDOW, "penalty_c": PENALTY_C,
             "hmm_states": list(HMM_STATES), "seeds": args.seeds, "n_demos": args.n_demos,
+            "noise_correlation": args.noise_correlation,
         }  # fmt: skip
         print()
         _print(summary["per_family"])

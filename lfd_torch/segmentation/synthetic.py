@@ -70,6 +70,7 @@ __all__ = [
     "out_and_back_steps",
     "revisit_steps",
     "scoop_steps",
+    "with_correlated_noise",
     "FAMILIES",
 ]
 
@@ -636,6 +637,33 @@ def scoop_steps(
         generator, corners @ rz.T, normals @ rz.T, bends, n_demos=n_demos, profile=profile,
         noise_fraction=noise_fraction,
     )  # fmt: skip
+
+
+def with_correlated_noise(syn: SyntheticSteps, rho: float, generator: torch.Generator) -> SyntheticSteps:
+    """The same noise-free demonstrations with new AR(1) position noise of lag-one correlation ``rho`` and the
+    same marginal standard deviation ``syn.noise``: e_t = rho e_(t-1) + (1 - rho^2)^(1/2) eta_t, eta_t ~ N(0, I),
+    e_0 ~ N(0, I) (stationary), times ``syn.noise``. A filtered sensor, a tremor or resampled data are not white
+    at the sampling rate; rho = 0 gives new white noise.
+
+    Args:
+        syn: a draw with ``clean`` (a benchmark family); rho: in [0, 1); generator: the new noise's randomness.
+    """
+    from scipy.signal import lfilter
+
+    if syn.clean is None:
+        raise ValueError("with_correlated_noise needs the noise-free demonstrations (syn.clean)")
+    if not 0.0 <= rho < 1.0:
+        raise ValueError(f"rho must be in [0, 1), got {rho}")
+    sequences = []
+    for i, n in enumerate(syn.demos.lengths.tolist()):
+        clean = syn.clean[i, : int(n)]
+        eta = torch.randn(clean.shape, generator=generator, dtype=clean.dtype, device=clean.device).cpu().numpy()
+        eta[1:] *= math.sqrt(1.0 - rho * rho)
+        e = torch.as_tensor(lfilter([1.0], [1.0, -rho], eta, axis=0), dtype=clean.dtype, device=clean.device)
+        sequences.append(clean + syn.noise * e)
+    demos = Demos.from_sequences(sequences, dt=DT, attractor=syn.demos.attractor, dtype=syn.demos.positions.dtype,
+                                 device=syn.demos.positions.device)
+    return replace(syn, demos=demos)
 
 
 FamilyDraw = Callable[[torch.Generator, int], SyntheticSteps]
