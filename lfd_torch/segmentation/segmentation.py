@@ -582,6 +582,7 @@ def _second_difference_variances(sequences: Sequence[Tensor], lags: Sequence[int
 
 NOISE_MODELS = ("ar1", "white")  # ``segment``'s noise_model
 NOISE_LAGS = (1, 2, 3, 4)  # lags of the second differences that :func:`position_noise_model` fits
+MAX_NOISE_CORRELATION = 0.8  # rho^L must decay over NOISE_LAGS to tell the noise from a random walk or the signal
 
 
 def position_noise_model(sequences: Sequence[Tensor], stride: int = 1) -> tuple[float, float]:
@@ -597,7 +598,9 @@ def position_noise_model(sequences: Sequence[Tensor], stride: int = 1) -> tuple[
     Model: x = y + e with e AR(1) and y smooth; the second difference at lag L has variance
     sigma^2 2 (1 - rho^L)(3 - rho^L) + S L^4, the last term the signal's (y'' L^2 dt^2)^2. Its robust variances at
     the lags :data:`NOISE_LAGS` are fitted in relative least squares, (sigma^2, S) >= 0 for every rho on a grid of
-    0.01 in [0, 0.98]. The result is the white estimate (:func:`position_noise`, rho = 0) unless the fitted AR(1)
+    0.01 in [0, 0.8]: beyond, rho^L hardly decays over lags 1-4, the noise's differences grow about linearly in L
+    like a random walk's, and a smooth signal whose differences are not exactly L^4 was read as such noise (rho
+    0.98 on a noise-free curve); a stronger correlation is read as 0.8, still far closer than white. The result is the white estimate (:func:`position_noise`, rho = 0) unless the fitted AR(1)
     noise gives the velocities of stride ``stride`` a larger noise: where the signal dominates the short lags
     (smooth recordings such as LASA) the white lag-one estimate is an upper bound of the noise and is kept.
     """
@@ -607,18 +610,16 @@ def position_noise_model(sequences: Sequence[Tensor], stride: int = 1) -> tuple[
         return white, 0.0
     lags = torch.tensor(NOISE_LAGS, dtype=torch.float64)
     best = (math.inf, 0.0, 0.0)
-    for rho in torch.arange(0.0, 0.985, 0.01, dtype=torch.float64).tolist():
+    for rho in torch.arange(0.0, MAX_NOISE_CORRELATION + 0.005, 0.01, dtype=torch.float64).tolist():
         q = 2.0 * (1.0 - rho**lags) * (3.0 - rho**lags)
-        X = torch.stack([q, lags**4], -1) / v.unsqueeze(-1)  # relative residuals: (X c - 1)
-        for cols in ((0, 1), (0,)):
+        X = torch.stack([q, lags**4], -1) / v.unsqueeze(-1)  # relative residuals: X c - 1
+        for cols in ((0, 1), (0,), (1,)):  # non-negative least squares in two unknowns
             c = torch.linalg.lstsq(X[:, cols], torch.ones_like(v).unsqueeze(-1)).solution.reshape(-1)
-            if bool((c >= 0).all()):
-                break
-        if not float(c[0]) > 0:
-            continue
-        res = float((X[:, cols] @ c - 1.0).square().sum())
-        if res < best[0]:
-            best = (res, math.sqrt(float(c[0])), rho)
+            if not bool((c >= 0).all()):
+                continue
+            res = float((X[:, cols] @ c - 1.0).square().sum())
+            if res < best[0]:
+                best = (res, math.sqrt(float(c[0])) if 0 in cols else 0.0, rho)
     _, sigma, rho = best
     if rho > 0.0 and float(velocity_noise(sigma, 2 * stride + 1, stride, 1.0, rho=rho)[stride]) > float(
             velocity_noise(white, 2 * stride + 1, stride, 1.0)[stride]):

@@ -1,0 +1,99 @@
+"""Position noise model of the segmentation: AR(1) fit, the velocities' noise under it, correlated synthetic noise."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from scipy.signal import lfilter
+
+from lfd_torch.errors import InvalidArgumentError
+from lfd_torch.segmentation import segment
+from lfd_torch.segmentation.segmentation import (
+    position_noise,
+    position_noise_model,
+    scale_velocities,
+    velocity_noise,
+)
+from lfd_torch.segmentation.synthetic import FAMILIES, with_correlated_noise
+
+F64 = torch.float64
+
+
+def _ar1(shape: tuple[int, ...], rho: float, sigma: float, seed: int) -> torch.Tensor:
+    """Stationary AR(1) noise along the second-to-last axis, by scipy's lfilter (an independent reference)."""
+    eta = torch.randn(shape, generator=torch.Generator().manual_seed(seed), dtype=F64).numpy()
+    eta[..., 1:, :] *= math.sqrt(1.0 - rho * rho)
+    return sigma * torch.as_tensor(lfilter([1.0], [1.0, -rho], eta, axis=-2))
+
+
+def _min_jerk_path(T: int = 800) -> torch.Tensor:
+    """(T, 2) two min-jerk legs with a 90-degree corner, unit legs (the benchmark's scale and rate)."""
+    tau = torch.linspace(0.0, 1.0, T // 2, dtype=F64)
+    s = (tau**3 * (10 - 15 * tau + 6 * tau**2)).unsqueeze(-1)
+    return torch.cat([s * torch.tensor([1.0, 0.0], dtype=F64), torch.tensor([1.0, 0.0], dtype=F64)
+                      + s * torch.tensor([0.0, 1.0], dtype=F64)])
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.3, 0.7])
+def test_velocity_noise_matches_monte_carlo_under_ar1_noise(rho):
+    """Reference: Monte Carlo. The empirical standard deviation of ``scale_velocities`` on AR(1) noise matches
+    ``velocity_noise(..., rho)`` inside the sequence and at its ends (within 10 %); rho = 0 is the white formula."""
+    k, T, sigma = 6, 120, 0.01
+    noise = _ar1((600, T, 2), rho, sigma, seed=1)
+    sd = torch.stack([scale_velocities(e, k, 0.01) for e in noise]).std(dim=(0, 2))
+    ref = velocity_noise(sigma, T, k, 0.01, rho=rho)
+    assert float((sd[15:-15] / ref[15:-15] - 1).abs().max()) < 0.1
+    assert float((sd[:2] / ref[:2] - 1).abs().max()) < 0.1
+    if rho == 0.0:
+        torch.testing.assert_close(ref, velocity_noise(sigma, T, k, 0.01))
+    else:  # correlation makes the slope noisier than white noise of the same level
+        assert float(ref[60]) > 1.2 * float(velocity_noise(sigma, T, k, 0.01)[60])
+
+
+@pytest.mark.parametrize("rho", [0.3, 0.5, 0.7])
+def test_position_noise_model_recovers_ar1_noise_on_a_moving_path(rho):
+    """Property: on a min-jerk path plus AR(1) noise of 1 % of the leg length the fit recovers rho within 0.1 and
+    sigma within 15 % (robust variances of 3200 differences), where the white lag-one estimate sees too little."""
+    path = _min_jerk_path()
+    seqs = [path + _ar1(path.shape, rho, 0.01, seed=s) for s in range(2)]
+    sigma, rho_hat = position_noise_model(seqs, stride=10)
+    assert sigma == pytest.approx(0.01, rel=0.15) and rho_hat == pytest.approx(rho, abs=0.1)
+    assert position_noise(seqs) < 0.9 * sigma
+
+
+def test_position_noise_model_keeps_the_white_estimate_for_white_noise_and_smooth_data():
+    """Property: white noise gives (nearly) the white estimate and rho <= 0.1; data whose short-lag differences are
+    signal (a smooth curve with 1e-6 noise: second differences growing as L^4) give exactly the white lag-one
+    estimate, rho = 0, as before the AR(1) model."""
+    path = _min_jerk_path()
+    white = [path + 0.01 * torch.randn(path.shape, generator=torch.Generator().manual_seed(s), dtype=F64)
+             for s in range(2)]
+    sigma, rho = position_noise_model(white, stride=10)
+    assert rho <= 0.1 and sigma == pytest.approx(0.01, rel=0.1)
+    t = torch.linspace(0, 2 * math.pi, 1000, dtype=F64)
+    smooth = [torch.stack([torch.cos(t), torch.sin(2 * t)], -1)
+              + 1e-6 * torch.randn(1000, 2, generator=torch.Generator().manual_seed(3), dtype=F64)]
+    assert position_noise_model(smooth, stride=13) == (position_noise(smooth), 0.0)
+
+
+def test_with_correlated_noise_has_the_asked_correlation_and_level():
+    """Property: the new noise of a family draw has lag-one autocorrelation rho (within 0.05) and the family's
+    level (within 10 %); the noise-free paths and the switches are those of the draw."""
+    syn = FAMILIES["straight_dwell_2d"](torch.Generator().manual_seed(0), 4)
+    out = with_correlated_noise(syn, 0.6, torch.Generator().manual_seed(1))
+    e = torch.cat([out.demos.positions[i, :n] - syn.clean[i, :n] for i, n in enumerate(syn.demos.lengths.tolist())])
+    r1 = float((e[1:] * e[:-1]).sum() / (e * e).sum())
+    assert r1 == pytest.approx(0.6, abs=0.05) and float(e.std()) == pytest.approx(syn.noise, rel=0.1)
+    assert torch.equal(out.switch_times, syn.switch_times) and torch.equal(out.demos.lengths, syn.demos.lengths)
+    with pytest.raises(ValueError, match="rho"):
+        with_correlated_noise(syn, 1.0, torch.Generator().manual_seed(1))
+
+
+def test_segment_rejects_an_unknown_noise_model_and_reports_the_fit():
+    syn = FAMILIES["straight_const_2d"](torch.Generator().manual_seed(0), 1)
+    with pytest.raises(InvalidArgumentError, match="noise_model"):
+        segment(syn.demos, generator=torch.Generator().manual_seed(0), noise_model="pink")
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), n_iterations=4)
+    assert seg.info["noise_correlation"] <= 0.1 and seg.info["position_noise"] == pytest.approx(syn.noise, rel=0.15)
