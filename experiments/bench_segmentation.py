@@ -191,15 +191,23 @@ def detect_segment(syn: SyntheticSteps, seed: int, selection: str | None = None,
 
 
 def segment_options(pairs: list[str]) -> dict[str, Any]:
-    """``["extra_dof=2", "robust_dof=None", "dwell_cue=True"]`` -> {"extra_dof": 2.0, "robust_dof": None,
-    "dwell_cue": True} (ints stay ints)."""
+    """``["extra_dof=2", "robust_dof=None", "dwell_cue=True", "noise_model=white"]`` -> {"extra_dof": 2.0,
+    "robust_dof": None, "dwell_cue": True, "noise_model": "white"} (ints stay ints, anything else not a number
+    stays a string)."""
     out: dict[str, Any] = {}
     for pair in pairs:
         key, sep, value = pair.partition("=")
         if not sep:
             raise SystemExit(f"--segment-option expects KEY=VALUE, got {pair!r}")
-        out[key] = (None if value == "None" else value == "True" if value in ("True", "False")
-                    else int(value) if value.lstrip("-").isdigit() else float(value))
+        if value in ("None", "True", "False"):
+            out[key] = None if value == "None" else value == "True"
+        elif value.lstrip("-").isdigit():
+            out[key] = int(value)
+        else:
+            try:
+                out[key] = float(value)
+            except ValueError:
+                out[key] = value
     return out
 
 

@@ -216,6 +216,27 @@ def test_synthetic_study_rows_do_not_depend_on_the_number_of_workers():
         [{k: v for k, v in r.items() if k != "seconds"} for r in pooled]
 
 
+def test_segment_options_parse_numbers_flags_and_names():
+    """``--segment-option`` values: None/True/False, ints, floats, and any other word as a string (noise_model)."""
+    import bench_segmentation as bench
+
+    got = bench.segment_options(["extra_dof=2", "robust_dof=None", "dwell_cue=False", "direction_noise=0.1",
+                                 "noise_model=white"])
+    assert got == {"extra_dof": 2, "robust_dof": None, "dwell_cue": False, "direction_noise": 0.1,
+                   "noise_model": "white"}
+    assert isinstance(got["extra_dof"], int)
+
+
+def test_correlated_noise_cases_share_the_paths_of_the_white_ones():
+    """``synthetic_study(noise_correlation=rho)``: the same paths and switches as the white cases, other noise."""
+    import bench_segmentation as bench
+
+    kw = dict(seeds=1, methods=("ruptures",), families=("straight_const_2d",), n_demos=(1,))
+    white, ar1 = bench.synthetic_study(**kw), bench.synthetic_study(**kw, noise_correlation=0.5)
+    assert white[0]["true_switches"] == ar1[0]["true_switches"] and white[0]["lengths"] == ar1[0]["lengths"]
+    assert white[0]["noise_fraction"] == ar1[0]["noise_fraction"]
+
+
 def test_seed_stable_is_the_issue_7_rule():
     """``seed_stable``: every demonstration's most common step count must occur on >= 90 % of the seeds (9 of 10);
     one demonstration at 8 of 10 makes the case unstable, whatever the others do."""

@@ -58,7 +58,7 @@ def test_position_noise_model_recovers_ar1_noise_on_a_moving_path(rho):
     sigma within 15 % (robust variances of 3200 differences), where the white lag-one estimate sees too little."""
     path = _min_jerk_path()
     seqs = [path + _ar1(path.shape, rho, 0.01, seed=s) for s in range(2)]
-    sigma, rho_hat = position_noise_model(seqs, stride=10)
+    sigma, rho_hat = position_noise_model(seqs)
     assert sigma == pytest.approx(0.01, rel=0.15) and rho_hat == pytest.approx(rho, abs=0.1)
     assert position_noise(seqs) < 0.9 * sigma
 
@@ -70,12 +70,12 @@ def test_position_noise_model_keeps_the_white_estimate_for_white_noise_and_smoot
     path = _min_jerk_path()
     white = [path + 0.01 * torch.randn(path.shape, generator=torch.Generator().manual_seed(s), dtype=F64)
              for s in range(2)]
-    sigma, rho = position_noise_model(white, stride=10)
+    sigma, rho = position_noise_model(white)
     assert rho <= 0.1 and sigma == pytest.approx(0.01, rel=0.1)
     t = torch.linspace(0, 2 * math.pi, 1000, dtype=F64)
     smooth = [torch.stack([torch.cos(t), torch.sin(2 * t)], -1)
               + 1e-6 * torch.randn(1000, 2, generator=torch.Generator().manual_seed(3), dtype=F64)]
-    assert position_noise_model(smooth, stride=13) == (position_noise(smooth), 0.0)
+    assert position_noise_model(smooth) == (position_noise(smooth), 0.0)
 
 
 def test_with_correlated_noise_has_the_asked_correlation_and_level():
@@ -97,3 +97,13 @@ def test_segment_rejects_an_unknown_noise_model_and_reports_the_fit():
         segment(syn.demos, generator=torch.Generator().manual_seed(0), noise_model="pink")
     seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), n_iterations=4)
     assert seg.info["noise_correlation"] <= 0.1 and seg.info["position_noise"] == pytest.approx(syn.noise, rel=0.15)
+
+
+def test_white_noise_data_segment_exactly_as_under_the_white_model():
+    """Property: where the test keeps white noise (a benchmark family's white noise) ``noise_model="ar1"`` is the
+    earlier white estimate bit for bit: the same labels as ``noise_model="white"`` for the same seed."""
+    syn = FAMILIES["curved_dwell_2d"](torch.Generator().manual_seed(3), 2)
+    a = segment(syn.demos, generator=torch.Generator().manual_seed(0), n_iterations=10)
+    b = segment(syn.demos, generator=torch.Generator().manual_seed(0), n_iterations=10, noise_model="white")
+    assert a.info["noise_correlation"] == 0.0 and a.info["position_noise"] == b.info["position_noise"]
+    assert all(torch.equal(x, y) for x, y in zip(a.labels, b.labels))

@@ -569,7 +569,10 @@ def position_noise(sequences: Sequence[Tensor]) -> float:
     For x_t = y_t + e_t with a smooth y sampled fast enough, x_{t+1} - 2 x_t + x_{t-1} ~ e-part with variance
     6 sigma^2; the median absolute deviation (scaled by 1.4826) ignores the few large values at corners.
     """
-    return math.sqrt(_second_difference_variances(sequences, (1,))[0] / 6.0)
+    d2 = torch.cat([(s[2:] - 2.0 * s[1:-1] + s[:-2]).reshape(-1) for s in sequences if s.shape[0] > 2])
+    if d2.numel() == 0:
+        return 0.0
+    return float(1.4826 * d2.abs().median() / math.sqrt(6.0))
 
 
 def _second_difference_variances(sequences: Sequence[Tensor], lags: Sequence[int]) -> list[float]:
@@ -589,7 +592,7 @@ NOISE_FIT_VARIANCE = 10.0  # n x relative variance of a MAD variance estimate of
 NOISE_TEST_CHI2 = 10.83  # chi-square (1 degree of freedom) at p = 0.001: correlated noise only when the data show it
 
 
-def position_noise_model(sequences: Sequence[Tensor], stride: int = 1) -> tuple[float, float]:
+def position_noise_model(sequences: Sequence[Tensor]) -> tuple[float, float]:
     """(sigma, rho): standard deviation per axis and lag-one correlation of the position noise, AR(1).
 
     Why not white only (:func:`position_noise`): a sensor's or a filter's noise is rarely white at the sampling
@@ -613,10 +616,10 @@ def position_noise_model(sequences: Sequence[Tensor], stride: int = 1) -> tuple[
     independent Gaussian values, MAD's efficiency being 0.37; neighbouring second differences share samples,
     which about halves n). Smooth recordings whose short-lag differences are signal (LASA: their variances grow as
     L^4) improve by a fraction of that variance and stay white; AR(1) noise with rho >= 0.5 at 1 % of the span
-    improves by ten times the threshold and more. ``stride`` is unused (kept for the call sites).
+    improves by ten times the threshold and more.
     """
     v = torch.tensor(_second_difference_variances(sequences, NOISE_LAGS), dtype=torch.float64)
-    white = math.sqrt(float(v[0]) / 6.0)
+    white = position_noise(sequences)
     if not bool((v > 0).all()):
         return white, 0.0
     lags = torch.tensor(NOISE_LAGS, dtype=torch.float64)
@@ -1018,7 +1021,7 @@ def segment(
     dts = [float((t[1:] - t[:-1]).median()) for t in times]
     strides = [max(1, math.ceil(s.shape[0] / max_samples)) for s in seqs_full]
     if noise_model == "ar1":
-        sigma_x, rho_x = position_noise_model(seqs_full, stride=min(strides))
+        sigma_x, rho_x = position_noise_model(seqs_full)
     else:
         sigma_x, rho_x = position_noise(seqs_full), 0.0
     vel_full = [scale_velocities(s, k, dt) for s, k, dt in zip(seqs_full, strides, dts)]
