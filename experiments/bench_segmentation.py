@@ -348,7 +348,8 @@ def synthetic_study(
     times do: with two workers on two cores each case runs as it would alone). ``noise_correlation``: AR(1) noise
     of that lag-one correlation, same marginal level, instead of each family's white noise."""
     families = tuple(FAMILIES) if families is None else families
-    tasks = [(family, n, seed, methods, noise_correlation) for family in families for n in n_demos for seed in range(seeds)]
+    tasks = [(family, n, seed, methods, noise_correlation)
+             for family in families for n in n_demos for seed in range(seeds)]
     rows = []
     for case_rows in map_cases(_synthetic_case, tasks, jobs):
         for row in case_rows:

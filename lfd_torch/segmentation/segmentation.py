@@ -524,10 +524,10 @@ def velocity_noise(sigma_x: float, length: int, stride: int, dt: float, half_wid
         return sigma_x / (dt * sjj.sqrt())
     gain = {}  # window length -> sum_ij a_i a_j rho^|i - j|
     for m in sorted({int(v) for v in n.tolist()}):
-        j = torch.arange(m, dtype=torch.float64)
+        j = torch.arange(m, dtype=torch.float64, device="cpu")
         a = (j - j.mean()) / max(float((j - j.mean()).square().sum()), 1.0)
         gain[m] = float(a @ (rho ** (j.unsqueeze(0) - j.unsqueeze(1)).abs()) @ a)
-    return sigma_x * torch.tensor([gain[int(v)] for v in n.tolist()], dtype=torch.float64).sqrt() / dt
+    return sigma_x * torch.tensor([gain[int(v)] for v in n.tolist()], dtype=torch.float64, device="cpu").sqrt() / dt
 
 
 def path_length(velocity: Tensor, noise: Tensor, dt: float) -> Tensor:
@@ -619,13 +619,13 @@ def position_noise_model(sequences: Sequence[Tensor]) -> tuple[float, float]:
     L^4) improve by a fraction of that variance and stay white; AR(1) noise with rho >= 0.5 at 1 % of the span
     improves by ten times the threshold and more.
     """
-    v = torch.tensor(_second_difference_variances(sequences, NOISE_LAGS), dtype=torch.float64)
+    v = torch.tensor(_second_difference_variances(sequences, NOISE_LAGS), dtype=torch.float64, device="cpu")
     white = position_noise(sequences)
     if not bool((v > 0).all()):
         return white, 0.0
-    lags = torch.tensor(NOISE_LAGS, dtype=torch.float64)
+    lags = torch.tensor(NOISE_LAGS, dtype=torch.float64, device="cpu")
     fits = []  # (relative residual, sigma, rho)
-    for rho in torch.arange(0.0, MAX_NOISE_CORRELATION + 0.005, 0.01, dtype=torch.float64).tolist():
+    for rho in torch.arange(0.0, MAX_NOISE_CORRELATION + 0.005, 0.01, dtype=torch.float64, device="cpu").tolist():
         q = 2.0 * (1.0 - rho**lags) * (3.0 - rho**lags)
         X = torch.stack([q, lags**4], -1) / v.unsqueeze(-1)  # relative residuals: X c - 1
         best = (math.inf, 0.0, rho)
