@@ -49,6 +49,12 @@ white at the sampling rate (a filtered sensor, a tremor), a check the families w
 
     OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts synthetic --method segment \
         --noise-correlation 0.5 --n-demos 1 --jobs 2 --json results/tables/bench_segmentation_ar1.json
+
+``--n-steps M`` draws the straight and curved families with M legs instead of 3-5 (same corner angles, length
+ratio, timing and noise), a path with more corners than the benchmark's:
+
+    OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts synthetic --method segment \
+        --families straight_dwell_2d straight_const_2d curved_dwell_2d curved_const_2d --n-steps 7 --jobs 2
 """
 
 from __future__ import annotations
@@ -310,12 +316,14 @@ def map_cases(fn: Callable[[Any], Any], tasks: list[Any], jobs: int = 1):
         yield from pool.map(fn, tasks)
 
 
-def _synthetic_case(task: tuple[str, int, int, tuple[str, ...], float | None]) -> list[dict[str, Any]]:
+def _synthetic_case(task: tuple[str, int, int, tuple[str, ...], float | None, int | None]) -> list[dict[str, Any]]:
     """The rows of one (family, n_demos, seed) case, one per method (AR(1) noise of lag-one correlation rho instead
-    of the family's white noise when rho is not None, :func:`with_correlated_noise`, seeded data seed + 1)."""
-    family, n, seed, methods, rho = task
+    of the family's white noise when rho is not None, :func:`with_correlated_noise`, seeded data seed + 1; M legs
+    instead of the drawn number when n_steps is not None)."""
+    family, n, seed, methods, rho, n_steps = task
     torch.set_num_threads(1)
-    syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n)
+    overrides = {} if n_steps is None else {"n_steps": n_steps}
+    syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n, **overrides)
     if rho is not None:
         syn = with_correlated_noise(syn, rho, torch.Generator().manual_seed(data_seed(family, seed) + 1))
     rows = []
@@ -342,13 +350,17 @@ def synthetic_study(
     n_demos: tuple[int, ...] = (1, 4),
     jobs: int = 1,
     noise_correlation: float | None = None,
+    n_steps: int | None = None,
 ) -> list[dict[str, Any]]:
     """One row per (method, family, n_demos, seed); the data of a (family, seed) share the nominal path. ``jobs``
     worker processes (one thread each) share the cases; the rows, in the same order, do not depend on it (the wall
     times do: with two workers on two cores each case runs as it would alone). ``noise_correlation``: AR(1) noise
-    of that lag-one correlation, same marginal level, instead of each family's white noise."""
+    of that lag-one correlation, same marginal level, instead of each family's white noise. ``n_steps``: that many
+    legs instead of 3-5 (straight and curved families only)."""
     families = tuple(FAMILIES) if families is None else families
-    tasks = [(family, n, seed, methods, noise_correlation)
+    if n_steps is not None and not all(f.startswith(("straight_", "curved_")) for f in families):
+        raise SystemExit("--n-steps applies to the straight_* and curved_* families only (--families)")
+    tasks = [(family, n, seed, methods, noise_correlation, n_steps)
              for family in families for n in n_demos for seed in range(seeds)]
     rows = []
     for case_rows in map_cases(_synthetic_case, tasks, jobs):
@@ -424,6 +436,8 @@ def main() -> None:
     parser.add_argument("--noise-correlation", type=float, default=None, metavar="RHO",
                         help="synthetic part: AR(1) position noise of this lag-one correlation (same level) instead "
                              "of the families' white noise")  # fmt: skip
+    parser.add_argument("--n-steps", type=int, default=None, metavar="M",
+                        help="synthetic part, straight_* and curved_* families: M legs instead of 3-5")
     parser.add_argument("--json", type=str, default=None, help="write all rows to this JSON file")
     parser.add_argument("--segment-option", nargs="+", default=[], metavar="KEY=VALUE",
                         help="segment() keyword arguments of the segment methods (numbers, or None), e.g. extra_dof=2")
@@ -451,14 +465,14 @@ def main() -> None:
               f"max {max(r['other_max'] for r in rows_m):.3f}")  # fmt: skip
     if "synthetic" in args.parts:
         rows = synthetic_study(args.seeds, tuple(args.method), tuple(args.families), tuple(args.n_demos), args.jobs,
-                               args.noise_correlation)
+                               args.noise_correlation, args.n_steps)
         summary = summarize_synthetic(rows)
         result["synthetic"] = rows
         result["synthetic_summary"] = summary
         result["synthetic_settings"] = {
             "tolerance": TOLERANCE, "savgol_window": SAVGOL_WINDOW, "penalty_c": PENALTY_C,
             "hmm_states": list(HMM_STATES), "seeds": args.seeds, "n_demos": args.n_demos,
-            "noise_correlation": args.noise_correlation,
+            "noise_correlation": args.noise_correlation, "n_steps": args.n_steps,
         }  # fmt: skip
         print()
         _print(summary["per_family"])

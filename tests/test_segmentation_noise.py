@@ -107,3 +107,13 @@ def test_white_noise_data_segment_exactly_as_under_the_white_model():
     b = segment(syn.demos, generator=torch.Generator().manual_seed(0), n_iterations=10, noise_model="white")
     assert a.info["noise_correlation"] == 0.0 and a.info["position_noise"] == b.info["position_noise"]
     assert all(torch.equal(x, y) for x, y in zip(a.labels, b.labels))
+
+
+def test_family_draws_take_overrides_of_their_generator():
+    """``FAMILIES[name](generator, n_demos, n_steps=M)``: M legs (M - 1 switches in every demonstration); without
+    overrides the draw is unchanged."""
+    syn = FAMILIES["curved_const_2d"](torch.Generator().manual_seed(4), 2, n_steps=7)
+    assert syn.n_steps == 7 and syn.switch_times.shape == (2, 6) and syn.family == "curved_const_2d"
+    a = FAMILIES["straight_dwell_3d"](torch.Generator().manual_seed(4), 1)
+    b = FAMILIES["straight_dwell_3d"](torch.Generator().manual_seed(4), 1, **{})
+    assert torch.equal(a.demos.positions, b.demos.positions)

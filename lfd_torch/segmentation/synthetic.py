@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 from dataclasses import dataclass, replace
 
 import torch
@@ -666,12 +667,12 @@ def with_correlated_noise(syn: SyntheticSteps, rho: float, generator: torch.Gene
     return replace(syn, demos=demos)
 
 
-FamilyDraw = Callable[[torch.Generator, int], SyntheticSteps]
+FamilyDraw = Callable[..., SyntheticSteps]  # draw(generator, n_demos, **overrides of the generator's keywords)
 
 
 def _family(fn: Callable[..., SyntheticSteps], profile: str, dim: int, name: str) -> FamilyDraw:
-    def draw(generator: torch.Generator, n_demos: int) -> SyntheticSteps:
-        return replace(fn(generator, n_demos=n_demos, dim=dim, profile=profile), family=name)
+    def draw(generator: torch.Generator, n_demos: int, **overrides: Any) -> SyntheticSteps:
+        return replace(fn(generator, n_demos=n_demos, dim=dim, profile=profile, **overrides), family=name)
 
     draw.__name__ = name
     draw.__doc__ = f"{fn.__name__}(generator, n_demos=n_demos, dim={dim}, profile={profile!r}), all else drawn."
@@ -695,7 +696,8 @@ def _build_families() -> dict[str, FamilyDraw]:
     return out
 
 
-#: Family name -> ``draw(generator, n_demos)`` drawing a random instance (angles, lengths, timing, noise): the
+#: Family name -> ``draw(generator, n_demos, **overrides)`` drawing a random instance (angles, lengths, timing, noise;
+#: ``overrides`` fix keywords of the family's generator, e.g. ``n_steps=7`` for the straight and curved ones): the
 #: name is ``{shape}_{dwell|const}_{2d|3d}``, "dwell" meaning the min-jerk profile, "const" constant speed.
 #: The nominal path is drawn before the demonstrations, so one seed gives the same path for any ``n_demos``.
 FAMILIES: dict[str, FamilyDraw] = _build_families()
