@@ -624,20 +624,22 @@ def position_noise_model(sequences: Sequence[Tensor]) -> tuple[float, float]:
     if not bool((v > 0).all()):
         return white, 0.0
     lags = torch.tensor(NOISE_LAGS, dtype=torch.float64, device="cpu")
-    fits = []  # (relative residual, sigma, rho)
-    for rho in torch.arange(0.0, MAX_NOISE_CORRELATION + 0.005, 0.01, dtype=torch.float64, device="cpu").tolist():
-        q = 2.0 * (1.0 - rho**lags) * (3.0 - rho**lags)
-        X = torch.stack([q, lags**4], -1) / v.unsqueeze(-1)  # relative residuals: X c - 1
-        best = (math.inf, 0.0, rho)
-        for cols in ((0, 1), (0,), (1,)):  # non-negative least squares in two unknowns
-            c = torch.linalg.lstsq(X[:, cols], torch.ones_like(v).unsqueeze(-1)).solution.reshape(-1)
-            if bool((c >= 0).all()):
-                res = float((X[:, cols] @ c - 1.0).square().sum())
-                best = min(best, (res, math.sqrt(float(c[0])) if 0 in cols else 0.0, rho))
-        fits.append(best)
-    res, sigma, rho = min(fits)
+    rhos = torch.arange(0.0, MAX_NOISE_CORRELATION + 0.005, 0.01, dtype=torch.float64, device="cpu")  # (R,)
+    powers = rhos.unsqueeze(-1) ** lags  # (R, L)
+    X = torch.stack([2.0 * (1.0 - powers) * (3.0 - powers), (lags**4).expand_as(powers)], -1) / v.unsqueeze(-1)
+    ones = torch.ones_like(v)
+    # non-negative least squares in two unknowns, every rho at once: both terms, or one alone, of the fits >= 0
+    both = torch.linalg.lstsq(X, ones.expand(X.shape[0], -1).unsqueeze(-1)).solution.squeeze(-1)  # (R, 2)
+    alone = (X * ones.unsqueeze(-1)).sum(-2) / X.square().sum(-2)  # (R, 2): each term by itself
+    cand = torch.stack([both, torch.stack([alone[:, 0], torch.zeros_like(rhos)], -1),
+                        torch.stack([torch.zeros_like(rhos), alone[:, 1]], -1)], 1)  # (R, 3, 2)
+    res = ((X.unsqueeze(1) @ cand.unsqueeze(-1)).squeeze(-1) - 1.0).square().sum(-1)  # (R, 3)
+    res = torch.where((cand >= 0).all(-1), res, torch.full_like(res, math.inf))
+    best_res, pick = res.min(-1)  # (R,)
+    i = int(torch.argmin(best_res))
+    sigma, rho, res_min = math.sqrt(float(cand[i, int(pick[i]), 0])), float(rhos[i]), float(best_res[i])
     n = sum(int(s[2:].numel()) for s in sequences if s.shape[0] > 2)
-    if rho > 0.0 and sigma > 0.0 and (fits[0][0] - res) / (NOISE_FIT_VARIANCE / n) > NOISE_TEST_CHI2:
+    if rho > 0.0 and sigma > 0.0 and (float(best_res[0]) - res_min) / (NOISE_FIT_VARIANCE / n) > NOISE_TEST_CHI2:
         return sigma, rho
     return white, 0.0
 
