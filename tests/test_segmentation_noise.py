@@ -1,4 +1,5 @@
-"""Position noise model of the segmentation: AR(1) fit, the velocities' noise under it, correlated synthetic noise."""
+"""What the segmentation assumes of the data: the position noise model (AR(1) fit, the velocities' noise under it),
+correlated synthetic noise, family overrides, units."""
 
 from __future__ import annotations
 
@@ -117,3 +118,17 @@ def test_family_draws_take_overrides_of_their_generator():
     a = FAMILIES["straight_dwell_3d"](torch.Generator().manual_seed(4), 1)
     b = FAMILIES["straight_dwell_3d"](torch.Generator().manual_seed(4), 1, **{})
     assert torch.equal(a.demos.positions, b.demos.positions)
+
+
+def test_steps_do_not_depend_on_the_units_or_the_origin():
+    """Property: the model sees standardised positions, unit directions and log time ratios, so positions in
+    millimetres about another origin (x 1000 + offset) give the same step labels and the same switches."""
+    from lfd_torch.data import Demos
+
+    syn = FAMILIES["straight_const_3d"](torch.Generator().manual_seed(2), 2)
+    offset = torch.tensor([5000.0, -3000.0, 200.0], dtype=F64)
+    mm = Demos.from_sequences([1000.0 * s + offset for s in syn.demos.sequences()], dt=0.01)
+    a = segment(syn.demos, generator=torch.Generator().manual_seed(1), n_iterations=10)
+    b = segment(mm, generator=torch.Generator().manual_seed(1), n_iterations=10)
+    assert a.n_steps >= 3 and a.n_steps == b.n_steps and all(torch.equal(x, y) for x, y in zip(a.labels, b.labels))
+    torch.testing.assert_close(1000.0 * a.attractors[:-1] + offset, b.attractors[:-1])
