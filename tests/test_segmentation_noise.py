@@ -17,7 +17,7 @@ from lfd_torch.segmentation.segmentation import (
     scale_velocities,
     velocity_noise,
 )
-from lfd_torch.segmentation.synthetic import FAMILIES, with_correlated_noise
+from lfd_torch.segmentation.synthetic import FAMILIES, multi_step_demos, with_correlated_noise
 
 F64 = torch.float64
 
@@ -132,3 +132,33 @@ def test_steps_do_not_depend_on_the_units_or_the_origin():
     b = segment(mm, generator=torch.Generator().manual_seed(1), n_iterations=10)
     assert a.n_steps >= 3 and a.n_steps == b.n_steps and all(torch.equal(x, y) for x, y in zip(a.labels, b.labels))
     torch.testing.assert_close(1000.0 * a.attractors[:-1] + offset, b.attractors[:-1])
+
+
+def test_every_stored_data_set_keeps_the_white_estimate():
+    """Regression for the README's claim that the AR(1) model left every stored result unchanged: the test keeps
+    white noise (rho = 0, the lag-one estimate) on all 30 LASA shapes, on the 280 white-noise benchmark cases
+    (14 families x 10 data seeds x 1 and 4 demonstrations), on preprocessed scooping demonstrations and on the
+    3-D set."""
+    import sys
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from lfd_torch.data import load_lasa
+    from lfd_torch.data.lasa import LASA_NAMES
+    from lfd_torch.preprocess import Preprocess
+    from lfd_torch.robot.demonstration import scooping_demonstration
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+    from bench_segmentation import data_seed
+
+    sets = [[s.to(F64) for s in load_lasa(name).sequences()] for name in LASA_NAMES]
+    sets += [FAMILIES[f](torch.Generator().manual_seed(data_seed(f, seed)), n).demos.sequences()
+             for f in FAMILIES for n in (1, 4) for seed in range(10)]
+    sets += [[s.to(F64) for s in Preprocess()(scooping_demonstration(seed).demos()).sequences()] for seed in (0, 5)]
+    kw = OmegaConf.to_container(OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "segment_lasa.yaml")
+                                .synthetic_3d)  # the 3-D set of experiments/segment_lasa.py
+    sets.append(multi_step_demos(torch.Generator().manual_seed(int(kw.pop("data_seed", 0))), dim=3, **kw)
+                .demos.sequences())
+    kept = [position_noise_model(seqs) == (position_noise(seqs), 0.0) for seqs in sets]
+    assert len(kept) == 313 and all(kept), [i for i, k in enumerate(kept) if not k]
