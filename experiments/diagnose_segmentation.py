@@ -46,9 +46,11 @@ def captured_runs():
         sampler_module._Run.sample = original
 
 
-def score_gap(family: str, seed: int, n_demos: int = 1, **options) -> dict:
-    """Steps and collapsed scores of the returned and the true labelling of one case."""
-    syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n_demos)
+def score_gap(family: str, seed: int, n_demos: int = 1, n_steps: int | None = None, **options) -> dict:
+    """Steps and collapsed scores of the returned and the true labelling of one case (``n_steps``: the family drawn
+    with that many legs, as ``bench_segmentation.py --n-steps``)."""
+    overrides = {} if n_steps is None else {"n_steps": n_steps}
+    syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n_demos, **overrides)
     with captured_runs() as runs:
         seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), **options)
     run, res = runs[-1], seg.sampler
@@ -85,6 +87,8 @@ def main() -> None:
     ap.add_argument("--parts", action="store_true", help="also split every gap into the score's terms")
     ap.add_argument("--case", nargs=3, action="append", default=[], metavar=("FAMILY", "N_DEMOS", "SEED"),
                     help="a case to score (repeatable; replaces --family, --n-demos and --seeds)")
+    ap.add_argument("--n-steps", type=int, default=None, metavar="M",
+                    help="straight and curved families drawn with M legs (the cases of bench_segmentation.py --n-steps)")
     ap.add_argument("--json", default=None, help="write every case's row (scores, gap, its terms) to this JSON file")
     args = ap.parse_args()
     if args.case:
@@ -103,7 +107,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|")
     rows = []
     for family, n_demos, seed in cases:
-        r = {"n_demos": n_demos, **score_gap(family, seed, n_demos, **options)}
+        r = {"n_demos": n_demos, **score_gap(family, seed, n_demos, args.n_steps, **options)}
         rows.append(r)
         print(f"| {r['family']} | {n_demos} | {r['seed']} | {r['true_steps']} | {r['found_steps']} | "
               f"{r['score_found']} | {r['score_true']} | {r['gap']} |", flush=True)
@@ -120,7 +124,7 @@ def main() -> None:
 
         from lfd_torch.store import atomic_write, git_sha
 
-        out = {"options": options, "git_sha": git_sha(), "cases": rows}
+        out = {"options": options, "n_steps": args.n_steps, "git_sha": git_sha(), "cases": rows}
         atomic_write(args.json, lambda p: p.write_text(json.dumps(out, indent=1)))
 
 
