@@ -20,6 +20,17 @@ transitions (about log((K alpha + kappa) / alpha) = 3.4 nats each with the defau
     OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_scooping_segmentation.py
     OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_scooping_segmentation.py --seeds 20 --json out.json
     OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_scooping_segmentation.py --evidence
+    OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_scooping_segmentation.py --turns --json turns.json
+
+``--turns`` asks what the switches found inside a stage look like at the model's resolution, against the corners
+and the within-step turns of the synthetic benchmark (:data:`lfd_torch.segmentation.synthetic.FAMILIES`, whose
+switches issue 7 asks the same model to find). For every switch found it gives the turn of the path (the angle
+between the chords over ``h`` of the path length before and after the switch, :func:`chord_turn`) for h = 1.25 %
+(one spacing of the sampler's grid at ``max_samples=80``) and 5 %, the speed there over the demonstration's
+median speed, and whether the spoon rests (speed below 5 % of the 95th percentile) within 0.25 s of it. The same
+turns are measured on the noise-free synthetic paths (10 seeds each, one demonstration): at the true corners of
+``straight_const_3d`` and ``curved_const_3d`` (switches the benchmark requires) and at the middle of every curved
+leg and of the ``scoop_const_3d`` hook (turns inside a step, which must not be cut).
 """
 
 from __future__ import annotations
@@ -67,7 +78,70 @@ def labelling_evidence(seg, demos, labels: torch.Tensor, direction_noise: float 
     return float(ll.gather(-1, lab[:, None]).sum() + field_log_density(b, psi, prior).sum())
 
 
-def run_seed(seed: int, evidence: bool = False, selection: str = "map", **options) -> dict:
+def chord_turn(x: torch.Tensor, t0: int, h: float) -> float:
+    """Turn of a path at sample t0, degrees: the angle between the chords x(l0 - h L) -> x(l0) and
+    x(l0) -> x(l0 + h L), l the arc length (chords of the samples), L the path length; x (T, d), h a fraction.
+    At a corner between straight legs longer than h L it is the corner's angle; on a circular arc turning by phi over
+    a length l_a it is phi h L / l_a."""
+    arc = torch.cat([x.new_zeros(1), (x[1:] - x[:-1]).norm(dim=-1).cumsum(0)])
+    L = float(arc[-1])
+
+    def at(length: float) -> torch.Tensor:  # linear interpolation of x at arc length ``length`` (clamped)
+        length = min(max(length, 0.0), L)
+        j = int(torch.searchsorted(arc, torch.tensor(length, dtype=arc.dtype)).clamp(1, len(arc) - 1))
+        f = (length - float(arc[j - 1])) / max(float(arc[j] - arc[j - 1]), 1e-300)
+        return x[j - 1] + f * (x[j] - x[j - 1])
+
+    l0 = float(arc[t0])
+    a, b, c = at(l0 - h * L), x[t0], at(l0 + h * L)
+    cos = torch.dot(b - a, c - b) / ((b - a).norm() * (c - b).norm()).clamp_min(1e-300)
+    return float(torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0))))
+
+
+TURN_WIDTHS = (0.0125, 0.05)  # h of chord_turn: one grid spacing at max_samples = 80, and four
+
+
+def switch_turns(x: torch.Tensor, dt: float, switches: list[int], stage_switches: list[int]) -> list[dict]:
+    """Per switch: its fraction of the length, whether a stage switch lies within 3 % of the length, the chord turns,
+    the speed over the median speed and whether the tip rests within 0.25 s (positions x (T, 3), m)."""
+    T = x.shape[0]
+    speed = torch.cat([(x[1] - x[0]).norm()[None], (x[2:] - x[:-2]).norm(dim=-1) / 2, (x[-1] - x[-2]).norm()[None]])
+    speed = speed / dt
+    rest = 0.05 * float(torch.quantile(speed, 0.95))
+    half = round(0.25 / dt)
+    return [{
+        "at": round(t / T, 3), "stage_switch": any(abs(t - s) <= TOLERANCE * T for s in stage_switches),
+        **{f"turn_{100 * h:g}pct": round(chord_turn(x, t, h), 1) for h in TURN_WIDTHS},
+        "speed_ratio": round(float(speed[t] / speed.median()), 2),
+        "rest": bool((speed[max(t - half, 0): t + half + 1] < rest).any()),
+    } for t in switches]
+
+
+def synthetic_turns(seeds: int) -> list[dict]:
+    """Chord turns on the noise-free synthetic paths (one demonstration, the benchmark's data seeds): at the true
+    corners of the constant-speed straight and curved families, at the middle of every curved leg and of the scoop
+    hook."""
+    from lfd_torch.segmentation.synthetic import FAMILIES
+    from bench_segmentation import data_seed
+
+    rows = []
+    for family in ("straight_const_3d", "curved_const_3d", "scoop_const_3d"):
+        for seed in range(seeds):
+            syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), 1)
+            x, T = syn.clean[0], int(syn.demos.lengths[0])
+            x = x[:T]
+            bounds = [0, *syn.switch_times[0].tolist(), T]
+            points = [] if family == "scoop_const_3d" else [("corner", c) for c in bounds[1:-1]]
+            legs = range(len(bounds) - 1) if family == "curved_const_3d" else [1] if family == "scoop_const_3d" else []
+            points += [("hook middle" if family == "scoop_const_3d" else "arc middle",
+                        (bounds[m] + bounds[m + 1]) // 2) for m in legs]
+            for kind, t in points:
+                rows.append({"family": family, "seed": seed, "kind": kind,
+                             **{f"turn_{100 * h:g}pct": round(chord_turn(x, t, h), 1) for h in TURN_WIDTHS}})
+    return rows
+
+
+def run_seed(seed: int, evidence: bool = False, selection: str = "map", turns: bool = False, **options) -> dict:
     demo = scooping_demonstration(seed)
     demos = Preprocess()(demo.demos())
     T = demo.n_samples
@@ -81,10 +155,15 @@ def run_seed(seed: int, evidence: bool = False, selection: str = "map", **option
     gap = None
     if evidence:
         gap = labelling_evidence(seg, demos, seg.labels[0]) - labelling_evidence(seg, demos, demo.stages)
+    row_turns = None
+    if turns:
+        dt = float(demos.times[0, 1] - demos.times[0, 0])
+        row_turns = switch_turns(demos.positions[0, :T].double(), dt, found, truth)
     return {
         "seed": seed, "T": T, "steps": seg.n_steps, "truth": [round(s / T, 3) for s in truth],
         "found": [round(f / T, 3) for f in found], "error_pct": [round(e, 2) for e in errors],
         "every_switch": every, "wall_s": round(wall, 2), "evidence_gap": None if gap is None else round(gap, 1),
+        **({"turns": row_turns} if turns else {}),
     }  # fmt: skip
 
 
@@ -93,6 +172,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seeds", type=int, default=10, help="generator seeds 0..N-1")
     ap.add_argument("--json", type=str, default=None)
     ap.add_argument("--evidence", action="store_true", help="also the evidence gap found - truth (nats)")
+    ap.add_argument("--turns", action="store_true",
+                    help="also the chord turn, speed and rest at every switch found, and the synthetic reference")
     ap.add_argument("--selection", choices=list(SELECTIONS), default="map",
                     help="segment(selection=...): how the returned sample is chosen")
     ap.add_argument("--segment-option", nargs="+", default=[], metavar="KEY=VALUE",
@@ -103,7 +184,7 @@ def main(argv: list[str] | None = None) -> None:
     print("| seed | steps | true switches | found switches | error % | wall s | evidence gap (nats) |")
     print("|---|---|---|---|---|---|---|")
     for seed in range(args.seeds):
-        r = run_seed(seed, args.evidence, args.selection, **segment_options(args.segment_option))
+        r = run_seed(seed, args.evidence, args.selection, args.turns, **segment_options(args.segment_option))
         rows.append(r)
         print(f"| {r['seed']} | {r['steps']} | {r['truth']} | {r['found']} | {r['error_pct']} | "
               f"{r['wall_s']} | {r['evidence_gap']} |", flush=True)
@@ -113,9 +194,34 @@ def main(argv: list[str] | None = None) -> None:
     med = statistics.median(e for r in rows for e in r["error_pct"])
     print(f"\n3 steps: {exact}/{n}; every switch within {100 * TOLERANCE:.0f} %: {every}/{n}; median switch error "
           f"{med:.2f} %; mean wall {statistics.mean(r['wall_s'] for r in rows):.2f} s")
+    out = rows
+    if args.turns:
+        keys = [f"turn_{100 * h:g}pct" for h in TURN_WIDTHS]
+        print(f"\n| seed | switch at | stage switch | turn +-{TURN_WIDTHS[0]:.2%} (deg) | turn +-{TURN_WIDTHS[1]:.0%} "
+              "(deg) | speed / median | rest within 0.25 s |\n|---|---|---|---|---|---|---|")
+        for r in rows:
+            for w in r["turns"]:
+                print(f"| {r['seed']} | {w['at']} | {w['stage_switch']} | {w[keys[0]]} | {w[keys[1]]} | "
+                      f"{w['speed_ratio']} | {w['rest']} |")
+        reference = synthetic_turns(args.seeds)
+        print("\nSynthetic benchmark, noise-free paths, one demonstration (min / median / max over the points):")
+        print(f"| family | point | n | turn +-{TURN_WIDTHS[0]:.2%} (deg) | turn +-{TURN_WIDTHS[1]:.0%} (deg) |\n|---|---|---|---|---|")
+        for key in dict.fromkeys((r["family"], r["kind"]) for r in reference):
+            sel = [r for r in reference if (r["family"], r["kind"]) == key]
+            cells = [f"{min(r[k] for r in sel)} / {statistics.median(r[k] for r in sel):.1f} / {max(r[k] for r in sel)}"
+                     for k in keys]
+            print(f"| {key[0]} | {key[1]} | {len(sel)} | {cells[0]} | {cells[1]} |")
+        within = [w for r in rows for w in r["turns"] if not w["stage_switch"]]
+        if within:
+            print("Switches found inside a stage: turn +-{:.2%} {} / {:.1f} / {} deg (min / median / max), speed / "
+                  "median {} / {:.2f} / {}, at a rest: {}/{}".format(
+                      TURN_WIDTHS[0], *(f(w[keys[0]] for w in within) for f in (min, statistics.median, max)),
+                      *(f(w["speed_ratio"] for w in within) for f in (min, statistics.median, max)),
+                      sum(w["rest"] for w in within), len(within)))
+        out = {"seeds": rows, "synthetic_reference": reference}
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump(rows, fh, indent=1)
+            json.dump(out, fh, indent=1)
 
 
 if __name__ == "__main__":

@@ -269,3 +269,23 @@ def test_diagnose_segmentation_scores_the_returned_labelling_as_the_sampler_does
     assert r["gap"] == pytest.approx(r["score_found"] - r["score_true"], abs=0.11)
     assert sum(r["gap_parts"].values()) == pytest.approx(r["gap"], abs=0.5)  # the terms add up to the score
     assert set(r["gap_parts"]) == {"emission", "dwell", "transitions", "initial", "features"}
+
+
+def test_chord_turn_is_the_corner_angle_and_the_arc_fraction():
+    """``chord_turn`` (the scooping turn study): at a corner between straight legs longer than h L it is the corner's
+    angle; on a circular arc turning by phi over a length l_a it is phi h L / l_a (the two chords' directions are
+    those of their midpoints, h L of arc apart). Closed forms."""
+    import math
+
+    import bench_scooping_segmentation as bench
+
+    theta = math.radians(70.0)  # a polyline: 1 m along x, then 1 m at 70 degrees
+    s = torch.linspace(0.0, 1.0, 501, dtype=torch.float64)[:, None]
+    leg_b = torch.tensor([math.cos(theta), math.sin(theta)], dtype=torch.float64)
+    x = torch.cat([torch.cat([s - 1.0, torch.zeros_like(s)], -1), s[1:] * leg_b], 0)
+    assert bench.chord_turn(x, 500, 0.0125) == pytest.approx(70.0, abs=1e-6)
+    assert bench.chord_turn(x, 500, 0.2) == pytest.approx(70.0, abs=1e-6)
+    assert bench.chord_turn(x, 250, 0.1) == pytest.approx(0.0, abs=1e-6)  # inside a leg, 0.2 m from the corner
+    phi = torch.linspace(0.0, math.pi, 2001, dtype=torch.float64)  # a half circle: L = pi, 180 degrees
+    arc = torch.stack([torch.cos(phi), torch.sin(phi)], -1)
+    assert bench.chord_turn(arc, 1000, 0.05) == pytest.approx(180.0 * 0.05, rel=1e-3)  # h L = l_a / 20: 9 degrees
