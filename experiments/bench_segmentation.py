@@ -55,6 +55,14 @@ ratio, timing and noise), a path with more corners than the benchmark's:
 
     OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts synthetic --method segment \
         --families straight_dwell_2d straight_const_2d curved_dwell_2d curved_const_2d --n-steps 7 --jobs 2
+
+``--rate HZ`` records every case at HZ instead of 100 Hz (:func:`lfd_torch.segmentation.synthetic.with_sampling_rate`:
+the same motions and durations, new white noise of the same level per sample), a sensor slower or faster than the
+one the families were drawn for: at 10 Hz a demonstration has 30-110 samples, at 500 Hz 1500-5500. The baselines
+keep their 25-sample velocity window, so only ``--method segment`` is meaningful there:
+
+    OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts synthetic --method segment \
+        --rate 25 --jobs 2 --json results/tables/bench_segmentation_rate25.json
 """
 
 from __future__ import annotations
@@ -77,7 +85,7 @@ import torch
 
 from lfd_torch.data import load_lasa
 from lfd_torch.segmentation import segment
-from lfd_torch.segmentation.synthetic import FAMILIES, SyntheticSteps, with_correlated_noise
+from lfd_torch.segmentation.synthetic import FAMILIES, SyntheticSteps, with_correlated_noise, with_sampling_rate
 
 LASA_SHAPES = ("Multi_Models_1", "Multi_Models_2", "Multi_Models_3", "Multi_Models_4", "Angle", "Sshape")
 METHODS = ("segment", "segment_joint", "segment_collapsed", "segment_modal", "segment_map", "ruptures", "ruptures_l2",
@@ -317,14 +325,18 @@ def map_cases(fn: Callable[[Any], Any], tasks: list[Any], jobs: int = 1):
         yield from pool.map(fn, tasks)
 
 
-def _synthetic_case(task: tuple[str, int, int, tuple[str, ...], float | None, int | None]) -> list[dict[str, Any]]:
-    """The rows of one (family, n_demos, seed) case, one per method (AR(1) noise of lag-one correlation rho instead
-    of the family's white noise when rho is not None, :func:`with_correlated_noise`, seeded data seed + 1; M legs
-    instead of the drawn number when n_steps is not None)."""
-    family, n, seed, methods, rho, n_steps = task
+def _synthetic_case(task: tuple[str, int, int, tuple[str, ...], float | None, int | None, float | None]
+                    ) -> list[dict[str, Any]]:  # fmt: skip
+    """The rows of one (family, n_demos, seed) case, one per method (recorded at ``rate`` Hz instead of 100 when
+    rate is not None, :func:`with_sampling_rate`, new white noise seeded data seed + 2; AR(1) noise of lag-one
+    correlation rho instead of the white noise when rho is not None, :func:`with_correlated_noise`, seeded data
+    seed + 1; M legs instead of the drawn number when n_steps is not None)."""
+    family, n, seed, methods, rho, n_steps, rate = task
     torch.set_num_threads(1)
     overrides = {} if n_steps is None else {"n_steps": n_steps}
     syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n, **overrides)
+    if rate is not None:
+        syn = with_sampling_rate(syn, rate, torch.Generator().manual_seed(data_seed(family, seed) + 2))
     if rho is not None:
         syn = with_correlated_noise(syn, rho, torch.Generator().manual_seed(data_seed(family, seed) + 1))
     rows = []
@@ -352,16 +364,18 @@ def synthetic_study(
     jobs: int = 1,
     noise_correlation: float | None = None,
     n_steps: int | None = None,
+    rate: float | None = None,
 ) -> list[dict[str, Any]]:
     """One row per (method, family, n_demos, seed); the data of a (family, seed) share the nominal path. ``jobs``
     worker processes (one thread each) share the cases; the rows, in the same order, do not depend on it (the wall
     times do: with two workers on two cores each case runs as it would alone). ``noise_correlation``: AR(1) noise
     of that lag-one correlation, same marginal level, instead of each family's white noise. ``n_steps``: that many
-    legs instead of 3-5 (straight and curved families only)."""
+    legs instead of 3-5 (straight and curved families only). ``rate``: the demonstrations recorded at that many Hz
+    instead of 100, same noise per sample."""
     families = tuple(FAMILIES) if families is None else families
     if n_steps is not None and not all(f.startswith(("straight_", "curved_")) for f in families):
         raise SystemExit("--n-steps applies to the straight_* and curved_* families only (--families)")
-    tasks = [(family, n, seed, methods, noise_correlation, n_steps)
+    tasks = [(family, n, seed, methods, noise_correlation, n_steps, rate)
              for family in families for n in n_demos for seed in range(seeds)]
     rows = []
     for case_rows in map_cases(_synthetic_case, tasks, jobs):
@@ -439,6 +453,9 @@ def main() -> None:
                              "of the families' white noise")  # fmt: skip
     parser.add_argument("--n-steps", type=int, default=None, metavar="M",
                         help="synthetic part, straight_* and curved_* families: M legs instead of 3-5")
+    parser.add_argument("--rate", type=float, default=None, metavar="HZ",
+                        help="synthetic part: the demonstrations recorded at HZ instead of 100 Hz (same durations, "
+                             "white noise of the same level per sample)")
     parser.add_argument("--json", type=str, default=None, help="write all rows to this JSON file")
     parser.add_argument("--segment-option", nargs="+", default=[], metavar="KEY=VALUE",
                         help="segment() keyword arguments of the segment methods (numbers, or None), e.g. extra_dof=2")
@@ -466,14 +483,14 @@ def main() -> None:
               f"max {max(r['other_max'] for r in rows_m):.3f}")  # fmt: skip
     if "synthetic" in args.parts:
         rows = synthetic_study(args.seeds, tuple(args.method), tuple(args.families), tuple(args.n_demos), args.jobs,
-                               args.noise_correlation, args.n_steps)
+                               args.noise_correlation, args.n_steps, args.rate)
         summary = summarize_synthetic(rows)
         result["synthetic"] = rows
         result["synthetic_summary"] = summary
         result["synthetic_settings"] = {
             "tolerance": TOLERANCE, "savgol_window": SAVGOL_WINDOW, "penalty_c": PENALTY_C,
             "hmm_states": list(HMM_STATES), "seeds": args.seeds, "n_demos": args.n_demos,
-            "noise_correlation": args.noise_correlation, "n_steps": args.n_steps,
+            "noise_correlation": args.noise_correlation, "n_steps": args.n_steps, "rate": args.rate,
         }  # fmt: skip
         print()
         _print(summary["per_family"])

@@ -17,7 +17,7 @@ from lfd_torch.segmentation.segmentation import (
     scale_velocities,
     velocity_noise,
 )
-from lfd_torch.segmentation.synthetic import FAMILIES, multi_step_demos, with_correlated_noise
+from lfd_torch.segmentation.synthetic import FAMILIES, multi_step_demos, with_correlated_noise, with_sampling_rate
 
 F64 = torch.float64
 
@@ -90,6 +90,31 @@ def test_with_correlated_noise_has_the_asked_correlation_and_level():
     assert torch.equal(out.switch_times, syn.switch_times) and torch.equal(out.demos.lengths, syn.demos.lengths)
     with pytest.raises(ValueError, match="rho"):
         with_correlated_noise(syn, 1.0, torch.Generator().manual_seed(1))
+
+
+def test_with_sampling_rate_keeps_the_motion_and_maps_the_switches():
+    """At 50 Hz the noise-free paths are every second sample of the 100 Hz ones (the interpolation is exact at their
+    instants) and a switch c becomes ceil(c / 2); at 500 Hz every fifth sample is an original one and the switch
+    sample is the first at or after the corner's instant; the new noise is white with the family's level; the
+    correlated-noise variant keeps the new time step."""
+    syn = FAMILIES["curved_dwell_2d"](torch.Generator().manual_seed(0), 2)
+    slow = with_sampling_rate(syn, 50.0, torch.Generator().manual_seed(1))
+    fast = with_sampling_rate(syn, 500.0, torch.Generator().manual_seed(1))
+    for i, n in enumerate(syn.demos.lengths.tolist()):
+        m = int(slow.demos.lengths[i])
+        assert m == (n - 1) // 2 + 1 and int(fast.demos.lengths[i]) == 5 * (n - 1) + 1
+        assert torch.allclose(slow.clean[i, :m], syn.clean[i, :n:2], atol=1e-12)
+        assert torch.allclose(fast.clean[i, : 5 * (n - 1) + 1 : 5], syn.clean[i, :n], atol=1e-12)
+        e = fast.demos.positions[i, : int(fast.demos.lengths[i])] - fast.clean[i, : int(fast.demos.lengths[i])]
+        assert float(e.std()) == pytest.approx(syn.noise, rel=0.1)
+        assert abs(float((e[1:] * e[:-1]).sum() / (e * e).sum())) < 0.05
+    assert torch.equal(slow.switch_times, (syn.switch_times + 1) // 2)
+    assert torch.equal(fast.switch_times, 5 * syn.switch_times)
+    assert float(fast.demos.times[0, 1] - fast.demos.times[0, 0]) == pytest.approx(0.002)
+    ar1 = with_correlated_noise(fast, 0.5, torch.Generator().manual_seed(2))
+    assert torch.equal(ar1.demos.times, fast.demos.times)
+    with pytest.raises(ValueError, match="rate"):
+        with_sampling_rate(syn, 0.1, torch.Generator().manual_seed(1))
 
 
 def test_segment_rejects_an_unknown_noise_model_and_reports_the_fit():

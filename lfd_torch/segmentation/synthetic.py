@@ -72,6 +72,7 @@ __all__ = [
     "revisit_steps",
     "scoop_steps",
     "with_correlated_noise",
+    "with_sampling_rate",
     "FAMILIES",
 ]
 
@@ -662,9 +663,49 @@ def with_correlated_noise(syn: SyntheticSteps, rho: float, generator: torch.Gene
         eta[1:] *= math.sqrt(1.0 - rho * rho)
         e = torch.as_tensor(lfilter([1.0], [1.0, -rho], eta, axis=0), dtype=clean.dtype, device=clean.device)
         sequences.append(clean + syn.noise * e)
-    demos = Demos.from_sequences(sequences, dt=DT, attractor=syn.demos.attractor, dtype=syn.demos.positions.dtype,
+    dt = float(syn.demos.times[0, 1] - syn.demos.times[0, 0])
+    demos = Demos.from_sequences(sequences, dt=dt, attractor=syn.demos.attractor, dtype=syn.demos.positions.dtype,
                                  device=syn.demos.positions.device)
     return replace(syn, demos=demos)
+
+
+def with_sampling_rate(syn: SyntheticSteps, rate: float, generator: torch.Generator) -> SyntheticSteps:
+    """The same motions recorded at another rate: the noise-free demonstrations resampled at ``rate`` Hz (linear
+    interpolation between the 100 Hz samples, exact at their instants) over the same durations, with new white
+    position noise of the same standard deviation per sample (a slower or faster sensor of the same quality).
+
+    A true switch stays the first sample at or after its corner's instant: ceil(c dt / dt'), c the corner's sample at
+    the family's dt = 0.01 s, dt' = 1 / rate. ``corner_angles``, ``waypoints``, ``noise`` and ``span`` are unchanged.
+
+    Args:
+        syn: a draw with ``clean`` (a benchmark family) at dt = 0.01 s; rate: Hz, > 0, leaving every
+            demonstration at least 3 samples; generator: the new noise's randomness.
+    """
+    if syn.clean is None:
+        raise ValueError("with_sampling_rate needs the noise-free demonstrations (syn.clean)")
+    if not (isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0):
+        raise ValueError(f"rate must be a positive number of Hz, got {rate!r}")
+    new_dt = 1.0 / float(rate)
+    ratio = DT / new_dt  # new samples per old sample
+    clean_out, sequences = [], []
+    for i, n in enumerate(syn.demos.lengths.tolist()):
+        clean = syn.clean[i, : int(n)]
+        m = math.floor((n - 1) * ratio + 1e-9) + 1
+        if m < 3:
+            raise ValueError(f"rate {rate} Hz leaves demonstration {i} with {m} samples (at least 3 needed)")
+        where = torch.arange(m, dtype=clean.dtype, device=clean.device) / ratio  # old (fractional) sample index
+        j = where.floor().long().clamp(max=int(n) - 2)
+        a = (where - j).unsqueeze(-1)
+        resampled = clean[j] * (1.0 - a) + clean[j + 1] * a
+        clean_out.append(resampled)
+        noise = torch.randn(resampled.shape, generator=generator, dtype=clean.dtype).to(clean.device)
+        sequences.append(resampled + syn.noise * noise)
+    demos = Demos.from_sequences(sequences, dt=new_dt, attractor=syn.demos.attractor,
+                                 dtype=syn.demos.positions.dtype, device=syn.demos.positions.device)
+    T = max(c.shape[0] for c in clean_out)
+    padded = torch.stack([torch.cat([c, c[-1:].expand(T - c.shape[0], -1)]) for c in clean_out])
+    switch_times = torch.ceil(syn.switch_times.to(torch.float64) * ratio - 1e-9).long()
+    return replace(syn, demos=demos, clean=padded, switch_times=switch_times)
 
 
 FamilyDraw = Callable[..., SyntheticSteps]  # draw(generator, n_demos, **overrides of the generator's keywords)
