@@ -167,29 +167,63 @@ def _rest_path(T: int = 400, t_rest: float = 211.3, width: float = 25.0):
     return torch.cumsum(speed * 0.01, 0), 0.01 * t
 
 
-def test_dwell_switch_prior_equals_a_loop_over_grid_phases():
-    """Reference: per switch time tau and phase phi, walk the samples to find when the path length first reaches
-    L(tau) - phi and L(tau) - phi + h, then average exp(r(c)) over the phases (plain Python)."""
+def _first_reaching_time(L: list[float], tm: list[float], v: float) -> float:
+    """Plain-Python reference of ``time_at_length``: walk the samples to the first whose path length reaches v and
+    interpolate the time linearly in path length from the one before."""
+    j = next((j for j, x in enumerate(L) if x >= v), len(L) - 1)
+    if j == 0 or L[j] <= L[j - 1]:
+        return tm[j]
+    return tm[j - 1] + min(max((v - L[j - 1]) / (L[j] - L[j - 1]), 0.0), 1.0) * (tm[j] - tm[j - 1])
+
+
+def test_grid_crossings_equal_a_loop_and_a_fast_sample_is_no_pause():
+    """Reference loop over the levels of the grid (the first level of every grid sample, its interpolated instant);
+    and the property the crossings are for: at a stride of one sample (10 Hz) one sample whose speed estimate is
+    2.5 times the others makes the grid drop a level, so the sample times of the grid read a gap of two samples
+    (c = log 2, a pause) there, while the pace between the crossings reads the fast sample as fast (c < 0) and
+    nothing above the median."""
     length, times = _rest_path(T=120, t_rest=60.0, width=10.0)
-    grid = segmentation_module.path_grid((length.diff(prepend=length.new_zeros(1)) / 0.01).unsqueeze(-1),
-                                         torch.zeros(120, dtype=F64), 6, 0.01)
-    got = segmentation_module._dwell_switch_prior(length, times, grid, DWELL_PARAMS, n_phases=5)
-    L, tm, g = length.tolist(), times.tolist(), grid.tolist()
+    speed = length.diff(prepend=length.new_zeros(1)) / 0.01
+    got_t, got_l = segmentation_module.grid_crossings(speed.unsqueeze(-1), torch.zeros(120, dtype=F64), 6, 0.01, times)
+    L, tm = length.tolist(), times.tolist()
+    n = 20
+    firsts = {}
+    for lv in [(j + 0.5) * L[-1] / n for j in range(n)]:
+        firsts.setdefault(next((j for j, x in enumerate(L) if x >= lv), len(L) - 1), lv)
+    assert got_l.tolist() == pytest.approx([firsts[j] for j in sorted(firsts)], rel=1e-12)
+    assert got_t.tolist() == pytest.approx([_first_reaching_time(L, tm, firsts[j]) for j in sorted(firsts)],
+                                           rel=1e-12, abs=1e-12)
+    t = torch.arange(60, dtype=F64) * 0.1
+    fast = torch.full((60, 1), 7.3, dtype=F64)
+    fast[30] *= 2.5
+    zero = torch.zeros(60, dtype=F64)
+    by_samples = dwell_covariate(t, segmentation_module.path_grid(fast, zero, 1, 0.1))
+    instants, levels = segmentation_module.grid_crossings(fast, zero, 1, 0.1, t)
+    by_pace = dwell_covariate(instants, torch.arange(instants.numel()), levels)
+    assert float(by_samples[2:-2].max()) == pytest.approx(math.log(2.0))
+    assert float(by_pace[2:-2].max()) < 1e-9 and float(by_pace[2:-2].min()) < -0.3
+
+
+def test_dwell_switch_prior_equals_a_loop_over_grid_phases():
+    """Reference: per switch time tau and phase phi, the instants at which the path length reaches L(tau) - phi and
+    L(tau) - phi + h (interpolated between samples), then average exp(r(c)) over the phases (plain Python)."""
+    length, times = _rest_path(T=120, t_rest=60.0, width=10.0)
+    speed = length.diff(prepend=length.new_zeros(1)) / 0.01
+    grid_times, grid_levels = segmentation_module.grid_crossings(speed.unsqueeze(-1), torch.zeros(120, dtype=F64), 6,
+                                                                 0.01, times)
+    got = segmentation_module._dwell_switch_prior(length, times, grid_times, grid_levels, DWELL_PARAMS, n_phases=5)
+    L, tm, g, gl = length.tolist(), times.tolist(), grid_times.tolist(), grid_levels.tolist()
     h = L[-1] / len(g)
-    gaps = sorted(tm[b] - tm[a] for a, b in zip(g[:-1], g[1:]))
-    med = torch.tensor(gaps, dtype=F64).median().item()
+    paces = [(b - a) / (lb - la) for a, b, la, lb in zip(g[:-1], g[1:], gl[:-1], gl[1:])]
+    med = h * torch.tensor(paces, dtype=F64).median().item()  # the median pace over one grid spacing
     mu, delta, var = DWELL_PARAMS["dwell_mean"], DWELL_PARAMS["dwell_shift"], DWELL_PARAMS["dwell_noise"] ** 2
-
-    def first_reaching(v):
-        return next((j for j, x in enumerate(L) if x >= v), len(L) - 1)
-
     for tau in range(121):
         at = L[min(tau, 119)]
         terms = []
         for k in range(5):
             lo = max(at - (k + 0.5) * h / 5, L[0])
             hi = min(lo + h, L[-1])
-            dt_ = max(tm[first_reaching(hi)] - tm[first_reaching(lo)], 0.01)
+            dt_ = max(_first_reaching_time(L, tm, hi) - _first_reaching_time(L, tm, lo), 1e-6 * med)
             c = math.log(dt_ / med)
             terms.append(math.exp((delta * (c - mu) - 0.5 * delta**2) / var))
         assert float(got[tau]) == pytest.approx(math.log(sum(terms) / 5), rel=1e-9, abs=1e-9), tau
@@ -202,9 +236,10 @@ def test_dwell_switch_prior_centres_a_rest_whatever_the_grid(n_grid):
     follows the rest happens to lie)."""
     length, times = _rest_path()
     T = length.shape[0]
-    targets = (torch.arange(n_grid, dtype=F64) + 0.5) * (float(length[-1]) / n_grid)
-    grid = torch.unique(torch.searchsorted(length, targets).clamp_max(T - 1))
-    w = segmentation_module._dwell_switch_prior(length, times, grid, DWELL_PARAMS)[140:281]
+    speed = length.diff(prepend=length.new_zeros(1)) / 0.01
+    crossings = segmentation_module.grid_crossings(speed.unsqueeze(-1), torch.zeros(T, dtype=F64),
+                                                   math.ceil(T / n_grid), 0.01, times)
+    w = segmentation_module._dwell_switch_prior(length, times, *crossings, DWELL_PARAMS)[140:281]
     cdf = torch.softmax(w, 0).cumsum(0)
     median = 140 + int(torch.searchsorted(cdf, torch.tensor([0.5], dtype=F64)))
     assert abs(median - 211.3) <= 2.0, median
@@ -244,8 +279,8 @@ def scoop_results():
         out["dwell"].append(_every_switch(seg, syn))
         out["shift"].append(seg.info["dwell"]["dwell_shift"])
 
-        def blind(times, grid, _seed=seed):
-            c = real(times, grid)
+        def blind(times, grid, levels=None, _seed=seed):
+            c = real(times, grid, levels)
             perm = torch.randperm(c.numel() - 1, generator=torch.Generator().manual_seed(100 + _seed)) + 1
             return torch.cat([c[:1], c[perm]])
 

@@ -2,8 +2,10 @@
 
 Notation:
     N  sequences, T padded grid length, B labellings (or chains) scored at once
-    c  (N, T) dwell covariate on the sampler's grid: c_t = log(Delta_t / median Delta), Delta_t the time between
-       grid points t - 1 and t (c_0 = 0, unused); (B, N, T) where every chain has its own data (the Geweke test)
+    c  (N, T) dwell covariate on the sampler's grid: c_t = log(Delta_t / median Delta), Delta_t the pace between
+       grid points t - 1 and t: the time between the instants at which the path length reaches their levels over
+       the path length between them (:func:`~lfd_torch.segmentation.segmentation.grid_crossings`; c_0 = 0,
+       unused); (B, N, T) where every chain has its own data (the Geweke test)
     b  (B, N, T) 1 where a run of a state starts at t (phase 0 of the explicit-duration states), else 0
     mask  (N, T) bool, the grid points where a run can start: D <= t <= T_i - D (the first and the last run last at
        least D points, :func:`~lfd_torch.segmentation.transitions.expand_min_duration`)
@@ -93,19 +95,23 @@ _NOISE_DOF = 3.0  # nu0 of sigma^2 ~ IW(nu0, S0) (d = 1: an inverse gamma)
 _NOISE_MEAN = 0.1  # E[sigma^2] = S0 / (nu0 - 2)
 
 
-def dwell_covariate(times: Tensor, grid: Tensor) -> Tensor:
+def dwell_covariate(times: Tensor, grid: Tensor, levels: Tensor | None = None) -> Tensor:
     """(n,) c of one sequence: c_0 = 0, c_t = log(Delta_t / median Delta) for t >= 1.
 
     Args:
         times: (T,) sample times of the full-rate sequence, increasing (s).
         grid: (n,) increasing sample indices of the grid points (:func:`~lfd_torch.segmentation.path_grid`).
+        levels: (n,) path length of every grid point, or None. Given, Delta_t is the pace, the time between the
+            grid points over the path length between them (equal spacing unless the grid dropped a level).
     """
     t = times[grid]
     gaps = t[1:] - t[:-1]
     if gaps.numel() == 0:
         return torch.zeros_like(t)
+    if levels is not None:
+        gaps = gaps / (levels[1:] - levels[:-1]).to(gaps)
     if not bool((gaps > 0).all()) or not bool(torch.isfinite(gaps).all()):
-        raise NonFiniteError("times must increase strictly and be finite along the grid")
+        raise NonFiniteError("times (and levels) must increase strictly and be finite along the grid")
     return torch.cat([torch.zeros_like(t[:1]), torch.log(gaps / gaps.median())])
 
 

@@ -567,6 +567,50 @@ def path_grid(velocity: Tensor, noise: Tensor, stride: int, dt: float) -> Tensor
     return torch.unique(idx)
 
 
+def time_at_length(length: Tensor, times: Tensor, levels: Tensor) -> Tensor:
+    """(...) the instant at which the path length first reaches each level: with i the first sample whose
+    ``length`` L_i >= l, t = t_(i-1) + (l - L_(i-1)) / (L_i - L_(i-1)) (t_i - t_(i-1)), linear in path length
+    between the two samples (t_0 for l <= L_0, t_(T-1) beyond the end). ``length`` (T,) :func:`path_length`,
+    ``times`` (T,) s, ``levels`` (...)."""
+    T = length.shape[0]
+    i = torch.searchsorted(length, levels).clamp_max(T - 1)
+    prev = (i - 1).clamp_min(0)
+    span = length[i] - length[prev]
+    frac = ((levels - length[prev]) / torch.where(span > 0, span, torch.ones_like(span))).clamp(0.0, 1.0)
+    frac = torch.where((i > 0) & (span > 0), frac, torch.ones_like(frac))
+    t = times.to(length.dtype)
+    return t[prev] + frac * (t[i] - t[prev])
+
+
+def grid_crossings(velocity: Tensor, noise: Tensor, stride: int, dt: float, times: Tensor) -> tuple[Tensor, Tensor]:
+    """The instants (n,) s at which the estimated path length reaches the levels (n,) of :func:`path_grid`'s points.
+
+    Grid point j is the first sample whose path length reaches its level l_j (the first of the levels that give the
+    same sample: where one sample's path covers two levels the grid keeps one point); its instant is
+    :func:`time_at_length` of that level. The sample times themselves round every gap between grid points to whole
+    samples; at a stride of one or two samples (a 10-25 Hz recording) that rounding is the whole gap, and the
+    dwell covariate (:mod:`.dwell`) read a gap of two samples, where a fast noisy speed estimate made the grid drop
+    a level, as a pause (10 Hz, revisit_const_2d, 4 demonstrations: 7 steps for 4). The covariate is the pace
+    between these instants, time over path length.
+
+    Args: as :func:`path_grid`, and times (T,) the sample times (s). Without motion: the times of the grid's samples
+        and levels 0, 1, 2, ...
+    """
+    T = velocity.shape[0]
+    n = max(1, math.ceil(T / stride))
+    length = path_length(velocity, noise, dt)
+    total = float(length[-1])
+    if not total > 0.0:
+        idx = torch.arange(0, T, stride, device=velocity.device)
+        return times[idx].to(length.dtype), idx.to(length.dtype)
+    targets = (torch.arange(n, dtype=length.dtype, device=velocity.device) + 0.5) * (total / n)
+    idx = torch.searchsorted(length, targets).clamp_max(T - 1)
+    kept, inverse = torch.unique(idx, return_inverse=True)
+    level = torch.full(kept.shape, float("inf"), dtype=length.dtype, device=length.device)
+    level = level.scatter_reduce(0, inverse, targets, reduce="amin")
+    return time_at_length(length, times, level), level
+
+
 def position_noise(sequences: Sequence[Tensor]) -> float:
     """Standard deviation of white position noise per axis, from second differences (robust: MAD).
 
@@ -754,8 +798,8 @@ def _refine_switch(ll: Tensor, a: int, b: int, lo: int, hi: int, stride: int,
     return lo + cut, doubt
 
 
-def _dwell_switch_prior(length: Tensor, times: Tensor, grid: Tensor, params: dict[str, float],
-                        n_phases: int = 16) -> Tensor:
+def _dwell_switch_prior(length: Tensor, times: Tensor, grid_times: Tensor, grid_levels: Tensor,
+                        params: dict[str, float], n_phases: int = 16) -> Tensor:
     """(T + 1,) log weight of a switch at every full-rate sample tau under the dwell term (:mod:`.dwell`).
 
     On the grid a switch makes a run start at a grid point j, and the term's log ratio there is
@@ -765,23 +809,25 @@ def _dwell_switch_prior(length: Tensor, times: Tensor, grid: Tensor, params: dic
     So the weight of tau is r averaged over that phase: with the interval [L(tau) - phi, L(tau) - phi + h] in path
     length L (:func:`path_length`), phi uniform on [0, h) (``n_phases`` midpoints), the time it takes gives c and
     the weight is log mean_phi exp(r(c)). A rest then gets a plateau of weight whatever the grid, and the median
-    of the change-point posterior falls in its middle, not at the grid point that happened to follow it.
+    of the change-point posterior falls in its middle, not at the grid point that happened to follow it. The
+    times are those at which the path length reaches the interval's ends (:func:`time_at_length`), as the grid's
+    own are (:func:`grid_crossings`), and c is the interval's pace over the grid's median pace.
 
     Args:
-        length: (T,) path length at every sample; times: (T,) sample times (s); grid: (n,) the grid's samples.
+        length: (T,) path length at every sample; times: (T,) sample times (s); grid_times, grid_levels: (n,) the
+            grid points' instants and path lengths (:func:`grid_crossings`; their median pace is c's unit).
     """
     mu, delta, var = params["dwell_mean"], params["dwell_shift"], params["dwell_noise"] ** 2
-    T, n = length.shape[0], grid.numel()
+    T, n = length.shape[0], grid_times.numel()
     h = float(length[-1]) / n
-    gaps = times[grid[1:]] - times[grid[:-1]]
-    scale = gaps.median() if gaps.numel() else times.new_tensor(1.0)
+    pace = (grid_times[1:] - grid_times[:-1]) / (grid_levels[1:] - grid_levels[:-1])
+    scale = h * pace.median() if pace.numel() else times.new_tensor(1.0)
     at = length[torch.arange(T + 1, device=length.device).clamp_max(T - 1)]  # (T + 1,) L(tau)
     phi = (torch.arange(n_phases, dtype=length.dtype, device=length.device) + 0.5) * (h / n_phases)
     lo = (at.unsqueeze(-1) - phi).clamp_min(float(length[0]))  # (T + 1, P)
     hi = (lo + h).clamp_max(float(length[-1]))
-    t_lo = times[torch.searchsorted(length, lo).clamp_max(T - 1)]
-    t_hi = times[torch.searchsorted(length, hi).clamp_max(T - 1)]
-    c = torch.log((t_hi - t_lo).clamp_min(float(times[1] - times[0]) if T > 1 else 1.0) / scale)
+    c = torch.log((time_at_length(length, times, hi) - time_at_length(length, times, lo)).clamp_min(1e-6 * scale)
+                  / scale)
     ratio = (delta * (c - mu) - 0.5 * delta**2) / var
     return torch.logsumexp(ratio, -1) - math.log(n_phases)
 
@@ -1047,7 +1093,9 @@ def segment(
         if duration < 2:
             raise InvalidArgumentError(f"dwell_cue needs a minimum duration of at least 2 grid points, got {duration} "
                                        "(raise min_length or max_samples)")
-        dwell = [dwell_covariate(t, g) for t, g in zip(times, grid)]
+        crossing = [grid_crossings(v, sv, k, dt, t)
+                    for v, sv, k, dt, t in zip(vel_full, sigma_v_full, strides, dts, times)]
+        dwell = [dwell_covariate(c, torch.arange(c.shape[0], device=c.device), lv) for c, lv in crossing]
     try:
         result = sampler.run(xs, vs, generator, min_duration=duration, velocity_noise=sigma_v_t, speed_floor=s_floor,
                              dwell=dwell)
@@ -1074,7 +1122,7 @@ def segment(
         junc: list[tuple[int, Tensor]] = []
         coarse = grid[i][starts].tolist()  # full-rate sample of every run's first grid point
         switch_prior = None if not info_dwell else _dwell_switch_prior(
-            path_length(vf, sigma_v_full[i], dts[i]), times[i], grid[i], info_dwell)
+            path_length(vf, sigma_v_full[i], dts[i]), times[i], *crossing[i], info_dwell)
         for r in range(1, len(coarse)):
             lo = max(cuts[-1] + 1, (coarse[r - 1] + coarse[r]) // 2)
             hi = min(Ti - 1, (coarse[r] + (coarse[r + 1] if r + 1 < len(coarse) else Ti)) // 2)
