@@ -88,7 +88,7 @@ def chord_turn(x: torch.Tensor, t0: int, h: float) -> float:
 
     def at(length: float) -> torch.Tensor:  # linear interpolation of x at arc length ``length`` (clamped)
         length = min(max(length, 0.0), L)
-        j = int(torch.searchsorted(arc, torch.tensor(length, dtype=arc.dtype)).clamp(1, len(arc) - 1))
+        j = int(torch.searchsorted(arc, arc.new_tensor(length)).clamp(1, len(arc) - 1))
         f = (length - float(arc[j - 1])) / max(float(arc[j] - arc[j - 1]), 1e-300)
         return x[j - 1] + f * (x[j] - x[j - 1])
 

@@ -285,7 +285,7 @@ def test_chord_turn_is_the_corner_angle_and_the_arc_fraction():
     x = torch.cat([torch.cat([s - 1.0, torch.zeros_like(s)], -1), s[1:] * leg_b], 0)
     assert bench.chord_turn(x, 500, 0.0125) == pytest.approx(70.0, abs=1e-6)
     assert bench.chord_turn(x, 500, 0.2) == pytest.approx(70.0, abs=1e-6)
-    assert bench.chord_turn(x, 250, 0.1) == pytest.approx(0.0, abs=1e-6)  # inside a leg, 0.2 m from the corner
+    assert bench.chord_turn(x, 250, 0.1) == pytest.approx(0.0, abs=1e-6)  # inside a leg, 0.5 m from the corner
     phi = torch.linspace(0.0, math.pi, 2001, dtype=torch.float64)  # a half circle: L = pi, 180 degrees
     arc = torch.stack([torch.cos(phi), torch.sin(phi)], -1)
     assert bench.chord_turn(arc, 1000, 0.05) == pytest.approx(180.0 * 0.05, rel=1e-3)  # h L = l_a / 20: 9 degrees

@@ -179,8 +179,10 @@ def _first_reaching_time(L: list[float], tm: list[float], v: float) -> float:
 def test_grid_crossings_equal_a_loop_and_a_fast_sample_is_no_pause():
     """Reference loop over the levels of the grid (the first level of every grid sample, its interpolated instant);
     and the property the crossings are for: at a stride of one sample (10 Hz) one sample whose speed estimate is
-    2.5 times the others makes the grid drop a level, so the sample times of the grid read a gap of two samples
-    (c = log 2, a pause) there, while the pace between the crossings reads the fast sample as fast (c < 0) and
+    2.5 times the others lengthens the path, so the 60 levels no longer fall one per sample: the grid drops two
+    levels and, with the sample times, reads gaps of two samples (c = log 2, a pause) where the level spacing
+    slips past a sample (here at samples 21 and 40, away from the fast one). Without the fast sample the grid keeps
+    all 60 samples and c = 0 (control). The pace between the crossings reads the fast sample as fast (c < 0) and
     nothing above the median."""
     length, times = _rest_path(T=120, t_rest=60.0, width=10.0)
     speed = length.diff(prepend=length.new_zeros(1)) / 0.01
@@ -194,9 +196,12 @@ def test_grid_crossings_equal_a_loop_and_a_fast_sample_is_no_pause():
     assert got_t.tolist() == pytest.approx([_first_reaching_time(L, tm, firsts[j]) for j in sorted(firsts)],
                                            rel=1e-12, abs=1e-12)
     t = torch.arange(60, dtype=F64) * 0.1
-    fast = torch.full((60, 1), 7.3, dtype=F64)
-    fast[30] *= 2.5
+    steady = torch.full((60, 1), 7.3, dtype=F64)
     zero = torch.zeros(60, dtype=F64)
+    control = segmentation_module.path_grid(steady, zero, 1, 0.1)
+    assert control.numel() == 60 and float(dwell_covariate(t, control).abs().max()) < 1e-9
+    fast = steady.clone()
+    fast[30] *= 2.5
     by_samples = dwell_covariate(t, segmentation_module.path_grid(fast, zero, 1, 0.1))
     instants, levels = segmentation_module.grid_crossings(fast, zero, 1, 0.1, t)
     by_pace = dwell_covariate(instants, torch.arange(instants.numel()), levels)

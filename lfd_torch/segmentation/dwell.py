@@ -36,9 +36,12 @@ takes longer: c = 0.3-0.4 at 135-degree corners, 0.1-0.2 at 80 degrees, about 0 
 (``straight_const_3d``, data cases 3 and 8, 4 demonstrations). delta is then learned from the sharp corners
 (0.12-0.21) and a true switch at a mild corner pays for its c ~ 0: 2.2-12.1 nats against the true labelling in 8 of
 the 22 missed synthetic cases scored by ``experiments/diagnose_segmentation.py --parts``
-(results/tables/diagnose_segmentation_missed.json). Two corrections were tried and not kept: the grid's crossing
-times interpolated between samples (the sample times round every gap to whole samples, up to 1 / k of a gap at each
-end; the same every-switch count in each of six families, 60 single demonstrations), and the turning 1 - u_(t-1).u_t
+(results/tables/diagnose_segmentation_missed.json). The grid's instants are interpolated between samples
+(:func:`~lfd_torch.segmentation.segmentation.grid_crossings`, the pace between them): at 100 Hz the sample times
+round a gap by at most 1 / k of it at each end and the interpolation changes no case's every-switch verdict, but at
+10 Hz (k = 1) a grid gap is one or two whole samples, a fast noisy speed estimate made the grid drop a level and
+the term read the two-sample gap as a pause (``bench_segmentation.py --rate 10``: every switch 60 % of the 280
+cases with the sample times, 73 % with the pace). Two corrections were tried and not kept: the turning 1 - u_(t-1).u_t
 of the grid directions as a third regressor of c (delta falls to ~0 at constant speed and the dwell part of the gap
 to 0.2-0.8 nats, but at dwelling corners the turn and the rest coincide, the turn takes the rest's evidence, and
 every switch fell from 8 to 7 of 10 on scoop_dwell_3d and from 9 to 7 on curved_dwell_3d, one demonstration; one-off

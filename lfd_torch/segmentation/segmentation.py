@@ -542,6 +542,24 @@ def path_length(velocity: Tensor, noise: Tensor, dt: float) -> Tensor:
     return torch.cumsum(speed * dt, 0)
 
 
+def _grid_levels(velocity: Tensor, noise: Tensor, stride: int, dt: float) -> tuple[Tensor, Tensor, Tensor]:
+    """The path length (T,) at every sample, the grid's samples (n,) and their levels (n,): of the ceil(T / k) levels
+    (j + 1/2) L / ceil(T / k), each grid sample is the first sample reaching one, with the first such level (a
+    sample whose path covers two levels gives one point). Without motion: every k-th sample, levels 0, k, 2k, ..."""
+    T = velocity.shape[0]
+    n = max(1, math.ceil(T / stride))
+    length = path_length(velocity, noise, dt)
+    total = float(length[-1])
+    if not total > 0.0:
+        idx = torch.arange(0, T, stride, device=velocity.device)
+        return length, idx, idx.to(length.dtype)
+    targets = (torch.arange(n, dtype=length.dtype, device=velocity.device) + 0.5) * (total / n)
+    idx = torch.searchsorted(length, targets).clamp_max(T - 1)
+    kept, inverse = torch.unique(idx, return_inverse=True)
+    level = torch.full(kept.shape, float("inf"), dtype=length.dtype, device=length.device)
+    return length, kept, level.scatter_reduce(0, inverse, targets, reduce="amin")
+
+
 def path_grid(velocity: Tensor, noise: Tensor, stride: int, dt: float) -> Tensor:
     """The sampler's grid: ceil(T / k) samples equally spaced in estimated path length (module docstring, item 3).
 
@@ -556,15 +574,7 @@ def path_grid(velocity: Tensor, noise: Tensor, stride: int, dt: float) -> Tensor
     Returns:
         (n,) increasing long sample indices, n <= ceil(T / k).
     """
-    T = velocity.shape[0]
-    n = max(1, math.ceil(T / stride))
-    length = path_length(velocity, noise, dt)
-    total = float(length[-1])
-    if not total > 0.0:
-        return torch.arange(0, T, stride, device=velocity.device)
-    targets = (torch.arange(n, dtype=length.dtype, device=velocity.device) + 0.5) * (total / n)
-    idx = torch.searchsorted(length, targets).clamp_max(T - 1)
-    return torch.unique(idx)
+    return _grid_levels(velocity, noise, stride, dt)[1]
 
 
 def time_at_length(length: Tensor, times: Tensor, levels: Tensor) -> Tensor:
@@ -589,25 +599,17 @@ def grid_crossings(velocity: Tensor, noise: Tensor, stride: int, dt: float, time
     same sample: where one sample's path covers two levels the grid keeps one point); its instant is
     :func:`time_at_length` of that level. The sample times themselves round every gap between grid points to whole
     samples; at a stride of one or two samples (a 10-25 Hz recording) that rounding is the whole gap, and the
-    dwell covariate (:mod:`.dwell`) read a gap of two samples, where a fast noisy speed estimate made the grid drop
-    a level, as a pause (10 Hz, revisit_const_2d, 4 demonstrations: 7 steps for 4). The covariate is the pace
+    dwell covariate (:mod:`.dwell`) read the gaps of two samples that a noisy speed estimate leaves where the grid
+    drops a level as pauses (10 Hz, revisit_const_2d, 4 demonstrations: 7 steps for 4). The covariate is the pace
     between these instants, time over path length.
 
     Args: as :func:`path_grid`, and times (T,) the sample times (s). Without motion: the times of the grid's samples
-        and levels 0, 1, 2, ...
+        and their sample indices as levels.
     """
-    T = velocity.shape[0]
-    n = max(1, math.ceil(T / stride))
-    length = path_length(velocity, noise, dt)
-    total = float(length[-1])
-    if not total > 0.0:
-        idx = torch.arange(0, T, stride, device=velocity.device)
-        return times[idx].to(length.dtype), idx.to(length.dtype)
-    targets = (torch.arange(n, dtype=length.dtype, device=velocity.device) + 0.5) * (total / n)
-    idx = torch.searchsorted(length, targets).clamp_max(T - 1)
-    kept, inverse = torch.unique(idx, return_inverse=True)
-    level = torch.full(kept.shape, float("inf"), dtype=length.dtype, device=length.device)
-    level = level.scatter_reduce(0, inverse, targets, reduce="amin")
+    length, _, level = _grid_levels(velocity, noise, stride, dt)
+    if not float(length[-1]) > 0.0:
+        idx = level.long()
+        return times[idx].to(length.dtype), level
     return time_at_length(length, times, level), level
 
 
@@ -807,7 +809,8 @@ def _dwell_switch_prior(length: Tensor, times: Tensor, grid_times: Tensor, grid_
     labelling), c_j = log(time between grid points j - 1 and j / median). At full rate tau lies somewhere inside a
     grid interval, and where is an accident of the grid's phase (the grid starts half a spacing h into the path).
     So the weight of tau is r averaged over that phase: with the interval [L(tau) - phi, L(tau) - phi + h] in path
-    length L (:func:`path_length`), phi uniform on [0, h) (``n_phases`` midpoints), the time it takes gives c and
+    length L (:func:`path_length`, h = L / n the mean spacing of the grid's n points, one level where the grid kept
+    every level), phi uniform on [0, h) (``n_phases`` midpoints), the time it takes gives c and
     the weight is log mean_phi exp(r(c)). A rest then gets a plateau of weight whatever the grid, and the median
     of the change-point posterior falls in its middle, not at the grid point that happened to follow it. The
     times are those at which the path length reaches the interval's ends (:func:`time_at_length`), as the grid's
@@ -819,7 +822,9 @@ def _dwell_switch_prior(length: Tensor, times: Tensor, grid_times: Tensor, grid_
     """
     mu, delta, var = params["dwell_mean"], params["dwell_shift"], params["dwell_noise"] ** 2
     T, n = length.shape[0], grid_times.numel()
-    h = float(length[-1]) / n
+    h = float(length[-1]) / n  # the grid's mean spacing in path length
+    if not h > 0.0:  # no motion: no interval has a pace, every switch time weighs the same
+        return length.new_zeros(T + 1)
     pace = (grid_times[1:] - grid_times[:-1]) / (grid_levels[1:] - grid_levels[:-1])
     scale = h * pace.median() if pace.numel() else times.new_tensor(1.0)
     at = length[torch.arange(T + 1, device=length.device).clamp_max(T - 1)]  # (T + 1,) L(tau)
@@ -1096,6 +1101,7 @@ def segment(
         crossing = [grid_crossings(v, sv, k, dt, t)
                     for v, sv, k, dt, t in zip(vel_full, sigma_v_full, strides, dts, times)]
         dwell = [dwell_covariate(c, torch.arange(c.shape[0], device=c.device), lv) for c, lv in crossing]
+        assert all(c.shape[0] == g.shape[0] for c, g in zip(dwell, grid)), "dwell covariate and grid disagree"
     try:
         result = sampler.run(xs, vs, generator, min_duration=duration, velocity_noise=sigma_v_t, speed_floor=s_floor,
                              dwell=dwell)

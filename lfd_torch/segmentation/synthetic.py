@@ -671,14 +671,15 @@ def with_correlated_noise(syn: SyntheticSteps, rho: float, generator: torch.Gene
 
 def with_sampling_rate(syn: SyntheticSteps, rate: float, generator: torch.Generator) -> SyntheticSteps:
     """The same motions recorded at another rate: the noise-free demonstrations resampled at ``rate`` Hz (linear
-    interpolation between the 100 Hz samples, exact at their instants) over the same durations, with new white
+    interpolation between the draw's samples, exact at their instants) over the same durations, with new white
     position noise of the same standard deviation per sample (a slower or faster sensor of the same quality).
 
     A true switch stays the first sample at or after its corner's instant: ceil(c dt / dt'), c the corner's sample at
-    the family's dt = 0.01 s, dt' = 1 / rate. ``corner_angles``, ``waypoints``, ``noise`` and ``span`` are unchanged.
+    the draw's dt (0.01 s for a family), dt' = 1 / rate. ``corner_angles``, ``waypoints``, ``noise`` and ``span``
+    are unchanged.
 
     Args:
-        syn: a draw with ``clean`` (a benchmark family) at dt = 0.01 s; rate: Hz, > 0, leaving every
+        syn: a draw with ``clean`` (a benchmark family); rate: Hz, > 0, leaving every
             demonstration at least 3 samples; generator: the new noise's randomness.
     """
     if syn.clean is None:
@@ -686,7 +687,7 @@ def with_sampling_rate(syn: SyntheticSteps, rate: float, generator: torch.Genera
     if not (isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0):
         raise ValueError(f"rate must be a positive number of Hz, got {rate!r}")
     new_dt = 1.0 / float(rate)
-    ratio = DT / new_dt  # new samples per old sample
+    ratio = float(syn.demos.times[0, 1] - syn.demos.times[0, 0]) / new_dt  # new samples per old sample
     clean_out, sequences = [], []
     for i, n in enumerate(syn.demos.lengths.tolist()):
         clean = syn.clean[i, : int(n)]
