@@ -58,7 +58,7 @@ ratio, timing and noise), a path with more corners than the benchmark's:
 
 ``--rate HZ`` records every case at HZ instead of 100 Hz (:func:`lfd_torch.segmentation.synthetic.with_sampling_rate`:
 the same motions and durations, new white noise of the same level per sample), a sensor slower or faster than the
-one the families were drawn for: at 10 Hz a demonstration has 30-110 samples, at 500 Hz 1500-5500. The baselines
+one the families were drawn for: at 10 Hz a demonstration has 35-120 samples, at 500 Hz 1746-5971. The baselines
 keep their 25-sample velocity window, so only ``--method segment`` is meaningful there:
 
     OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts synthetic --method segment \

@@ -87,8 +87,9 @@ a switch instead: the demonstration's pauses are found as switches, but the lear
 (a few nats) does not remove the within-stage cuts, and the count stays 5
 (``experiments/bench_scooping_segmentation.py``, results/tables/bench_scooping_segmentation.json). Measured as
 turns of the path (``--turns``: the angle between the chords over 1.25 % of the path length on either side), the
-two cuts inside stages are turns at speed of 31-53 and 149-172 degrees, in the range of the constant-speed corners
-of the synthetic benchmark (34-148) that the model is required to cut; the turns it must keep inside a step (the
+cut in the U is a turn at speed of 40-53 degrees, in the range of the constant-speed corners of the synthetic
+benchmark (34-148) that the model is required to cut, and the cut over the cup a slow near reversal of 149-172
+degrees (the out-and-back families' reversals must be cut too); the turns the model must keep inside a step (the
 middles of curved legs and of the scoop hook) are at most 17 degrees.
 The synthetic ``scoop_*`` families showed the same limit at the approach-hook corner; with the dwell term the
 dwelling variant is found (a pause marks each true corner), the constant-speed one is not (figures of the earlier
