@@ -699,7 +699,8 @@ def with_sampling_rate(syn: SyntheticSteps, rate: float, generator: torch.Genera
         a = (where - j).unsqueeze(-1)
         resampled = clean[j] * (1.0 - a) + clean[j + 1] * a
         clean_out.append(resampled)
-        noise = torch.randn(resampled.shape, generator=generator, dtype=clean.dtype, device=generator.device).to(clean.device)
+        noise = torch.randn(resampled.shape, generator=generator, dtype=clean.dtype, device=generator.device)
+        noise = noise.to(clean.device)
         sequences.append(resampled + syn.noise * noise)
     demos = Demos.from_sequences(sequences, dt=new_dt, attractor=syn.demos.attractor,
                                  dtype=syn.demos.positions.dtype, device=syn.demos.positions.device)
