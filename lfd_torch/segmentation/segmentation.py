@@ -608,10 +608,14 @@ def grid_crossings(velocity: Tensor, noise: Tensor, stride: int, dt: float, time
         and their sample indices as levels.
     """
     length, _, level = _grid_levels(velocity, noise, stride, dt)
-    if not float(length[-1]) > 0.0:
-        idx = level.long()
-        return times[idx].to(length.dtype), level
-    return time_at_length(length, times, level), level
+    return _crossings(length, level, times), level
+
+
+def _crossings(length: Tensor, level: Tensor, times: Tensor) -> Tensor:
+    """(n,) instants of :func:`grid_crossings` from :func:`_grid_levels`' path length and levels."""
+    if not float(length[-1]) > 0.0:  # no motion: the levels are the grid's sample indices
+        return times[level.long()].to(length.dtype)
+    return time_at_length(length, times, level)
 
 
 def position_noise(sequences: Sequence[Tensor]) -> float:
@@ -1086,7 +1090,8 @@ def segment(
     sigma_v_full = [velocity_noise(sigma_x, s.shape[0], k, dt, rho=rho_x).to(s)
                     for s, k, dt in zip(seqs_full, strides, dts)]
     sigma_v = [float(sv.min()) for sv in sigma_v_full]  # inside the sequences
-    grid = [path_grid(v, sv, k, dt) for v, sv, k, dt in zip(vel_full, sigma_v_full, strides, dts)]
+    grid_levels = [_grid_levels(v, sv, k, dt) for v, sv, k, dt in zip(vel_full, sigma_v_full, strides, dts)]
+    grid = [g for _, g, _ in grid_levels]  # path_grid of every sequence
     xs = [s[g] for s, g in zip(seqs_full, grid)]
     vs = [v[g] for v, g in zip(vel_full, grid)]
     min_lens = [resolve_min_length(min_length, s.shape[0]) for s in seqs_full]
@@ -1099,10 +1104,8 @@ def segment(
         if duration < 2:
             raise InvalidArgumentError(f"dwell_cue needs a minimum duration of at least 2 grid points, got {duration} "
                                        "(raise min_length or max_samples)")
-        crossing = [grid_crossings(v, sv, k, dt, t)
-                    for v, sv, k, dt, t in zip(vel_full, sigma_v_full, strides, dts, times)]
+        crossing = [(_crossings(length, lv, t), lv) for (length, _, lv), t in zip(grid_levels, times)]
         dwell = [dwell_covariate(c, torch.arange(c.shape[0], device=c.device), lv) for c, lv in crossing]
-        assert all(c.shape[0] == g.shape[0] for c, g in zip(dwell, grid)), "dwell covariate and grid disagree"
     try:
         result = sampler.run(xs, vs, generator, min_duration=duration, velocity_noise=sigma_v_t, speed_floor=s_floor,
                              dwell=dwell)
@@ -1129,7 +1132,7 @@ def segment(
         junc: list[tuple[int, Tensor]] = []
         coarse = grid[i][starts].tolist()  # full-rate sample of every run's first grid point
         switch_prior = None if not info_dwell else _dwell_switch_prior(
-            path_length(vf, sigma_v_full[i], dts[i]), times[i], *crossing[i], info_dwell)
+            grid_levels[i][0], times[i], *crossing[i], info_dwell)
         for r in range(1, len(coarse)):
             lo = max(cuts[-1] + 1, (coarse[r - 1] + coarse[r]) // 2)
             hi = min(Ti - 1, (coarse[r] + (coarse[r + 1] if r + 1 < len(coarse) else Ti)) // 2)
