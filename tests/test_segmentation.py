@@ -141,6 +141,19 @@ def test_steps_are_maximal_runs_of_hmm_states(case):
 MUTATION_CASE = ("constant", 2, 4, 3, 0)
 
 
+def capture_runs(monkeypatch) -> list:
+    """The sampler runs (``_Run``) that ``segment`` makes from here on, in order (their observations and scoring)."""
+    runs = []
+    original = sampler_module._Run.sample
+
+    def capture(self):
+        runs.append(self)
+        return original(self)
+
+    monkeypatch.setattr(sampler_module._Run, "sample", capture)
+    return runs
+
+
 def _blind_result(sequences: list[torch.Tensor], labeller) -> SamplerResult:
     """A SamplerResult whose states come from ``labeller(t, T_i)`` and whose fields are all equal (no data used)."""
     N, d = len(sequences), sequences[0].shape[1]
@@ -906,14 +919,7 @@ def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(m
     the same chains); with and without the position term, and with the spike-and-slab (straight or affine) field
     prior, and with the dwell term."""
     syn = synthetic(*MUTATION_CASE)
-    runs = []
-    original = sampler_module._Run.sample
-
-    def capture(self):
-        runs.append(self)
-        return original(self)
-
-    monkeypatch.setattr(sampler_module._Run, "sample", capture)
+    runs = capture_runs(monkeypatch)
     seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="map",
                   position_weight=position_weight, straight_weight=straight_weight, dwell_cue=dwell_cue)
     run, res = runs[-1], seg.sampler
@@ -971,6 +977,36 @@ def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(m
         F2 = torch.cat([F, F[:, k : k + 1]], 1)
         s3, F3 = run._viterbi_relabel(s2, F2, float(hyper[0]), float(hyper[1]))
         assert score(s3, F3) <= here + 1e-9, k
+    # nor does moving one switch by up to D grid points (both runs kept at least D long), or removing one run and
+    # placing the switch between its neighbours within D of it: every candidate built here with plain loops
+    D = run.D
+    n_shift = 0
+    for i in range(run.N):
+        n_i = int(run.lengths[i])
+        row = s[i, :n_i].tolist()
+        bounds = [0] + [t for t in range(1, n_i) if row[t] != row[t - 1]] + [n_i]
+        R = len(bounds) - 1
+        spans = [(bounds[r], bounds[r + 2], row[bounds[r]], row[bounds[r + 1]], bounds[r + 1], bounds[r + 1])
+                 for r in range(R - 1)]
+        spans += [(bounds[r - 1], bounds[r + 2], row[bounds[r - 1]], row[bounds[r + 1]], bounds[r], bounds[r + 1])
+                  for r in range(1, R - 1)]
+        for lo, hi, a, b, first, last in spans:
+            for c in range(max(lo + D, first - D), min(hi - D, last + D) + 1):
+                s2 = s.clone()
+                s2[i, lo:c], s2[i, c:hi] = a, b
+                if hi == n_i:
+                    s2[i, n_i:] = b
+                if torch.equal(s2, s):
+                    continue
+                F2 = F.clone()
+                for k in range(K):
+                    F2[i, k] = F[i, k] and bool((s2[i, :n_i] == k).any())
+                s3, F3 = sampler_module._compact_columns(s2, F2)
+                sc = score(s3, F3)
+                assert score(s2, F2) == pytest.approx(sc, abs=1e-8)  # a column nobody owns scores as absent
+                assert sc <= here + 1e-9, (i, lo, hi, c)
+                n_shift += 1
+    assert n_shift > 0
     # the fields returned with it are fitted to its labelling: each predicts the directions of its own samples
     assert res.field.shape[0] == K and torch.isfinite(res.noise).all()
     o = run.obs
@@ -988,19 +1024,12 @@ def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(m
 def test_map_search_batched_scores_equal_the_full_score_one_candidate_at_a_time(monkeypatch, position_weight,
                                                                                 straight_weight, dwell_cue):
     """The mode search's shortcuts (``_Run._climb_to_mode``) against the plain computation: the reassignment
-    scores updated from the current score by the terms a move touches equal ``_collapsed_score`` of every
+    and shift scores updated from the current score by the terms a move touches equal ``_collapsed_score`` of every
     candidate, and the batched Viterbi relabelling of several labellings (the look-ahead and split candidates)
     equals relabelling them one at a time; on the returned labelling and on each of its splits (more states,
     other runs)."""
     syn = synthetic(*MUTATION_CASE)
-    runs = []
-    original = sampler_module._Run.sample
-
-    def capture(self):
-        runs.append(self)
-        return original(self)
-
-    monkeypatch.setattr(sampler_module._Run, "sample", capture)
+    runs = capture_runs(monkeypatch)
     seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="map",
                   position_weight=position_weight, straight_weight=straight_weight, dwell_cue=dwell_cue)
     run, res = runs[-1], seg.sampler
@@ -1026,6 +1055,38 @@ def test_map_search_batched_scores_equal_the_full_score_one_candidate_at_a_time(
         fast = run._reassignment_scores(s_, F_, *cand, score(s_[None], F_[None])[0], hyper)
         full = score(cand[0], cand[1])
         assert torch.allclose(fast, full, rtol=0, atol=1e-8), float((fast - full).abs().max())
+        shifted = run._shifts(s_, F_)  # the shift move's scores, updated by the terms it touches
+        fast = run._shift_scores(s_, F_, *shifted, score(s_[None], F_[None])[0], hyper)
+        full = score(shifted[0], shifted[1])
+        assert torch.allclose(fast, full, rtol=0, atol=1e-8), float((fast - full).abs().max())
+
+
+def test_map_search_shift_move_removes_a_run_its_fields_held_in_place(monkeypatch):
+    """The shift move of the map search (``_Run._shifts``: remove a run and place the switch between its neighbours
+    anywhere in the three runs), on the case that motivated it (benchmark family scoop_const_3d, one
+    demonstration, data case 0, sampler seed 0): without the move the search stops at 3 runs, with it it returns
+    2 runs whose collapsed score, under the same hyperparameters, is above the 3-run labelling's; so the move
+    finds a better mode of the same posterior (the model decides, not the move)."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "experiments"))
+    from bench_segmentation import data_seed
+
+    from lfd_torch.segmentation.synthetic import FAMILIES
+
+    syn = FAMILIES["scoop_const_3d"](torch.Generator().manual_seed(data_seed("scoop_const_3d", 0)), 1)
+    captured = capture_runs(monkeypatch)
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0))
+    run, res = captured[-1], seg.sampler
+    monkeypatch.setattr(sampler_module._Run, "_shifts", lambda self, s, F: None)
+    without = segment(syn.demos, generator=torch.Generator().manual_seed(0))
+    assert len(seg.switches(0)) == 1 and len(without.switches(0)) == 2, (seg.switches(0), without.switches(0))
+    hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
+             for k in ("transition_concentration", "stickiness", "feature_mass")]
+
+    def score(s, F):
+        return float(run._collapsed_score(s[None], F[None], sampler_module.duration_phases(s[None], run.D), *hyper)[0])
+
+    gap = score(res.states, res.features) - score(without.sampler.states, without.sampler.features)
+    assert gap > 1.0, gap
 
 
 def test_straight_states_cut_single_demonstrations_of_straight_legs(monkeypatch):

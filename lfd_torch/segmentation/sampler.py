@@ -58,8 +58,9 @@ of the map search, the position term, straight states or the dwell term were mea
         coordinate ascent of the collapsed score (merge two states, alone or followed by a relabelling; reassign one
         state's runs in one sequence to another or a new state; Viterbi relabelling under the posterior-mean
         parameters; as a last resort, split one state by cutting its runs in halves, then relabel;
-        :meth:`_Run._climb_to_mode`),
-        then the best of the chains' results, returned with the posterior-mean fields of its labelling. The merge is
+        :meth:`_Run._climb_to_mode`), then from the best of the chains' results the same ascent with one more move
+        (move one switch of one sequence, or remove one run and place the switch between its neighbours), returned
+        with the posterior-mean fields of its labelling. The merge is
         the move of split-merge samplers for the BP-HMM (Hughes, Fox & Sudderth 2012): it leaves a mode in which one
         step is carried by two states, which the one-feature-at-a-time moves cannot join. Taken greedily, as a mode
         search, chains that reached one basin end at one labelling. Measured (``experiments/bench_segmentation_seeds.py
@@ -232,6 +233,7 @@ __all__ = ["SamplerResult", "BetaProcessHMMSampler", "HYPERPARAMETER_RANGES", "c
 
 _NEG_INF = float("-inf")
 _LOOKAHEAD = 4  # map search: merges tried with a relabelling after them when no merge alone raises the score
+_SHIFT_CHUNK = 512  # map search: shift candidates scored per batch (memory ~ chunk x N T x 3)
 _POSITION_SCALE = 0.05  # prior expected covariance of a state's positions / the data's variance, per axis
 _BLOCK = 2  # features whose flips share one batched forward pass (2^2 - 1 = 3 variants per sequence)
 
@@ -1138,9 +1140,9 @@ class _Run:
             c_best = snap["chain"]
         elif cfg.selection == "map":
             starts = [b for b in best if b is not None]
-            polished = [self._climb_to_mode(b) for b in starts]
+            polished = [self._climb_to_mode(b, shifts=False) for b in starts]
             c_best = max(range(len(polished)), key=lambda c: polished[c]["collapsed"])
-            snap = polished[c_best]
+            snap = self._climb_to_mode(polished[c_best], shifts=True)  # the best mode, its boundaries moved too
         else:
             c_best = int(torch.argmax(best_lp))
             snap = best[c_best]
@@ -1163,11 +1165,11 @@ class _Run:
             acceptance=acceptance,
         )
 
-    def _climb_to_mode(self, snap: dict) -> dict:
+    def _climb_to_mode(self, snap: dict, shifts: bool = True) -> dict:
         """``selection="map"``: coordinate ascent of the collapsed score from a sample (module docstring).
 
-        Three moves, each kept only when the collapsed score :meth:`_collapsed_score` rises, repeated until none
-        does (a local mode of p(s, F | u, z)):
+        Moves, each kept only when the collapsed score :meth:`_collapsed_score` rises, repeated until none does (a
+        local mode of p(s, F | u, z)):
             merge: all K (K - 1) / 2 merges of a pair of states (the runs of k relabelled j, f_j <- f_j or f_k, slot
                 k dropped) scored in one batched call, the best one taken; when none raises the score, the
                 ``_LOOKAHEAD`` best are tried once more with a relabelling after them (two moves as one);
@@ -1177,6 +1179,18 @@ class _Run:
                 such moves, scored in one batched call as the current score plus the change of the terms the move
                 touches, :meth:`_reassignment_scores`, then confirmed by the full score): the partial merges and
                 splits of state sharing;
+            shift (:meth:`_shifts`, with ``shifts`` and only when none of the above raises the score): in one
+                sequence, one switch moved by up to D grid points, or one run removed and the switch between its
+                neighbours placed within D grid points of it (all such moves scored in one batched call as the
+                current score plus the change of the terms they touch, :meth:`_shift_scores`; the best move of
+                every sequence taken at once, else the best alone, confirmed by the full score): the change-point
+                moves of a segmentation sampler (move a boundary; delete a segment), which the moves above make
+                only through the Viterbi relabelling under fields fitted to the old boundaries. Without it the
+                search stopped at a labelling whose boundaries its own fields held in place (benchmark family
+                scoop_const_3d, one demonstration, case 0: a short third run 3.8 nats below the best two-run
+                labelling, kept on 2 of 10 sampler seeds; 10 of 10 find the two runs with it). The sampler climbs
+                every chain without it and then the best chain's mode with it (on LASA Multi_Models_3 shifts on
+                all four chains doubled the time of ``segment``);
             split (only when none of the above raises the score): one state's runs cut in halves, the second halves
                 a new state, then a relabelling; states tried most used first, the first that raises the score
                 kept. It is the split of split-merge samplers taken greedily: without it a chain that had carried
@@ -1237,6 +1251,26 @@ class _Run:
                     sc2 = score_of(s2[None], F2[None])[0]
                     if bool(sc2 > score):
                         s, F, score, moved = s2, F2, sc2, True
+            shifted = self._shifts(s, F) if shifts and not moved else None
+            if shifted is not None:  # scored as the current score plus the change of the terms a shift touches,
+                # then confirmed by the full score (as the reassignments)
+                sc = torch.cat([self._shift_scores(s, F, *part, score, hyper)
+                                for part in zip(*(x.split(_SHIFT_CHUNK) for x in shifted))])
+                best = self._best_per_sequence(sc, shifted[2], score)  # improving moves, best first
+                if best:
+                    # every sequence's best move at once (each changes its own sequence), else the best alone
+                    tries = [best] if len(best) > 1 else []
+                    tries.append(best[:1])
+                    for pick in tries:
+                        s2, F2 = s.clone(), F.clone()
+                        for b in pick:
+                            i = int(shifted[2][b])
+                            s2[i], F2[i] = shifted[0][b, i], shifted[1][b, i]
+                        s2, F2 = _compact_columns(s2, F2)
+                        sc2 = score_of(s2[None], F2[None])[0]
+                        if bool(sc2 > score):
+                            s, F, score, moved = s2, F2, sc2, True
+                            break
             splits = self._splits(s, F) if not moved else []
             if splits:  # last resort: split one state, its runs cut in two halves, then relabel (the first of
                 # them, most used state first, that raises the score; relabelled and scored as one batch)
@@ -1277,6 +1311,110 @@ class _Run:
             s2 = torch.where((s == k) & second, torch.full_like(s, K), s)
             out.append((s2, torch.cat([F, F[:, k : k + 1]], 1)))
         return out
+
+    def _shifts(self, s: Tensor, F: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+        """The shift move of :meth:`_climb_to_mode`: (P, N, T) labels and (P, N, K) features, each with the
+        boundaries of one sequence changed in one place, every run at least D long:
+            a switch moved by up to D grid points;
+            a run removed, the switch between its neighbours placed within D grid points of it (or, when both
+                neighbours are one state or the run is the first or last, its samples given to its neighbour).
+        A state a sequence no longer uses is dropped from its features (a column nobody owns then scores as
+        absent). Also the (P,) sequence of each move and the (P, 3) states whose samples it changes (-1: none).
+        None without a switch."""
+        D = self.D
+        spans: list[tuple[int, ...]] = []  # (seq, lo, hi, a, b, first c', last c', removed state or -1)
+        s_cpu, lengths = s.cpu(), self.lengths.cpu().tolist()
+        for i in range(self.N):
+            row = s_cpu[i, : lengths[i]]
+            starts = [0] + (torch.nonzero(row[1:] != row[:-1]).reshape(-1) + 1).tolist()
+            ends, values = starts[1:] + [lengths[i]], row[starts].tolist()
+            R = len(values)
+            for r in range(R - 1):  # the switch between runs r and r + 1, moved by at most D
+                lo, hi, a, b, c = starts[r], ends[r + 1], values[r], values[r + 1], ends[r]
+                spans.append((i, lo, hi, a, b, max(lo + D, c - D), min(hi - D, c + D), -1))
+            for r in range(R):  # run r removed
+                if R == 1:
+                    continue
+                lo, hi = starts[max(r - 1, 0)], ends[min(r + 1, R - 1)]
+                if r == 0 or r == R - 1 or values[r - 1] == values[r + 1]:
+                    a = values[r - 1] if r > 0 else values[r + 1]
+                    spans.append((i, lo, hi, a, a, hi, hi, values[r]))
+                else:  # the new switch within D of the removed run
+                    spans.append((i, lo, hi, values[r - 1], values[r + 1], max(lo + D, starts[r] - D),
+                                  min(hi - D, ends[r] + D), values[r]))
+        if not spans:
+            return None
+        sp = torch.tensor(spans, dtype=torch.long, device=self.device)  # (W, 8)
+        seq, lo, hi, a, b, c0, c1, m = sp.unbind(1)
+        width = (c1 - c0 + 1).clamp_min(0)
+        owner = torch.repeat_interleave(torch.arange(sp.shape[0], device=self.device), width)  # (P,)
+        offset = torch.arange(owner.numel(), device=self.device) - torch.repeat_interleave(width.cumsum(0) - width,
+                                                                                              width)
+        new = c0[owner] + offset  # first grid point of b in the region
+        seq, lo, hi, a, b, m = seq[owner], lo[owner], hi[owner], a[owner], b[owner], m[owner]
+        tt = torch.arange(self.T, device=self.device).unsqueeze(0)
+        rows = s[seq]
+        inside = (tt >= lo.unsqueeze(1)) & (tt < hi.unsqueeze(1))
+        rows = torch.where(inside, torch.where(tt < new.unsqueeze(1), a.unsqueeze(1), b.unsqueeze(1)), rows)
+        rows = torch.where(self.valid[seq], rows, torch.gather(rows, 1, (self.lengths[seq] - 1).unsqueeze(1)))
+        changed = (rows != s[seq]).any(1)  # drop candidates equal to the current labelling
+        seq, rows = seq[changed], rows[changed]
+        touched = torch.stack([a, torch.where(b == a, torch.full_like(b, -1), b), m], 1)[changed]
+        P = seq.numel()
+        if P == 0:
+            return None
+        p = torch.arange(P, device=self.device)
+        cand = s.unsqueeze(0).expand(P, -1, -1).clone()
+        cand[p, seq] = rows
+        K = F.shape[-1]
+        used = (torch.nn.functional.one_hot(rows, K).bool() & self.valid[seq].unsqueeze(-1)).any(1)  # (P, K)
+        cand_f = F.unsqueeze(0).expand(P, -1, -1).clone()
+        cand_f[p, seq] = F[seq] & used
+        return cand, cand_f, seq, touched
+
+    @staticmethod
+    def _best_per_sequence(sc: Tensor, seq: Tensor, score: Tensor) -> list[int]:
+        """Indices of the best candidate of every sequence among those scoring above ``score``, best first."""
+        up = torch.nonzero(sc > score).reshape(-1)
+        if up.numel() == 0:
+            return []
+        order = up[torch.argsort(sc[up], descending=True)].tolist()
+        seen: set[int] = set()
+        out = []
+        for b in order:
+            if int(seq[b]) not in seen:
+                seen.add(int(seq[b]))
+                out.append(b)
+        return out
+
+    def _shift_scores(self, s: Tensor, F: Tensor, cand_s: Tensor, cand_f: Tensor, seq: Tensor, touched: Tensor,
+                      score: Tensor, hyper: list[Tensor]) -> Tensor:
+        """(P,) collapsed scores of the shift candidates of :meth:`_shifts`, as the current ``score`` of (s, F)
+        plus the change of the terms a move touches: the per-state terms (:meth:`_state_terms`) of the (P, 3)
+        ``touched`` states (-1: none), the transitions and initial state of sequence ``seq``, the dwell term and
+        the IBP prior. Equal to :meth:`_collapsed_score` of the candidates up to rounding."""
+        N, T, K = self.N, self.T, F.shape[-1]
+        P = seq.numel()
+        valid = self.valid.reshape(-1)
+        onehot = torch.nn.functional.one_hot(s.reshape(-1), K).to(self.dtype) * valid.to(self.dtype).unsqueeze(-1)
+        base = torch.cat([self._state_terms(onehot.unsqueeze(0))[0], onehot.new_zeros(1)])  # (K + 1,), -1: 0
+        cols = (cand_s.reshape(P, N * T, 1) == touched.unsqueeze(1)) & valid.view(1, -1, 1)  # (P, N T, 3)
+        lp = score + self._state_terms(cols.to(self.dtype)).sum(-1) - base[touched].sum(-1)
+        alpha, kappa = (h.view(1, 1, 1, 1) for h in hyper[:2])
+        p = torch.arange(P, device=self.device)
+        rows = torch.cat([cand_s[p, seq], s[seq]]).unsqueeze(1)  # (2P, 1, T)
+        f_rows = torch.cat([cand_f[p, seq], F[seq]]).unsqueeze(1)  # (2P, 1, K)
+        counts = transition_counts(rows, self.lengths[seq].repeat(2).unsqueeze(1), K,
+                                   free_transitions(duration_phases(rows, self.D), self.D)).to(self.dtype)
+        trans = dirichlet_multinomial_log_prob(counts, f_rows, alpha, kappa).sum(-1)  # (2P,)
+        init = -torch.log(f_rows.sum(-1).clamp_min(1).to(self.dtype)).sum(-1)
+        lp = lp + (trans[:P] - trans[P:]) + (init[:P] - init[P:])
+        if self.dwell is not None:
+            ev = dwell_evidence(self.dwell_prior, self.dwell, self.dwell_mask,
+                                duration_phases(torch.cat([cand_s, s[None]]), self.D))
+            lp = lp + ev[:P] - ev[P:]
+        ibp = ibp_log_prior(cand_f, hyper[2].expand(P), self.cfg.feature_concentration).to(self.dtype)
+        return lp + ibp - ibp_log_prior(F, hyper[2], self.cfg.feature_concentration).to(self.dtype)
 
     def _reassignments(self, s: Tensor, F: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None:
         """The reassign move of :meth:`_climb_to_mode`: every (sequence i, state k it uses, state j != k or a new
