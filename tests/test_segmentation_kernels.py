@@ -301,6 +301,28 @@ def test_field_marginal_likelihood_is_the_chib_identity(generator):
     assert float(empty) == 0.0
 
 
+def test_field_prior_slope_scale_is_the_slope_standard_deviation(generator):
+    """Monte Carlo over prior draws: the slope entries of B have standard deviation ``slope_scale`` (E[Psi] =
+    direction_noise^2 I, V0 slope block slope_scale^2 / direction_noise^2), the offsets 1; slope_scale=1 is the
+    plain prior V0 = I / direction_noise^2, and a scale <= 0 is refused."""
+    from lfd_torch.errors import InvalidArgumentError
+    from lfd_torch.segmentation.field import FieldPrior, field_prior, sample_field
+
+    d, n = 2, 40000
+    plain = field_prior(d, direction_noise=0.3, extra_dof=30.0)
+    assert torch.equal(plain.row_covariance, torch.eye(d + 1, dtype=F64) / 0.3**2)
+    for scale in (0.5, 3.0):
+        prior = field_prior(d, direction_noise=0.3, extra_dof=30.0, slope_scale=scale)
+        batch = FieldPrior(prior.mean.expand(n, -1, -1), prior.row_covariance.expand(n, -1, -1),
+                           prior.dof.expand(n), prior.scale.expand(n, -1, -1))
+        b, _ = sample_field(batch, generator)
+        sd = b.std(0)  # (d, p)
+        torch.testing.assert_close(sd[:, :d], torch.full((d, d), scale, dtype=F64), rtol=0.03, atol=0)
+        torch.testing.assert_close(sd[:, d], torch.ones(d, dtype=F64), rtol=0.03, atol=0)
+    with pytest.raises(InvalidArgumentError, match="slope_scale"):
+        field_prior(d, slope_scale=0.0)
+
+
 def test_dirichlet_multinomial_transitions_against_scipy(generator):
     """Sticky rows integrated out: the DM pmf of the row counts over the multinomial coefficient, owned block only."""
     from lfd_torch.segmentation.transitions import dirichlet_multinomial_log_prob

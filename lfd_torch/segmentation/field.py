@@ -61,7 +61,8 @@ Szz = sum_t w_t z_t z_t^T, Suz = sum_t w_t u_t z_t^T, Suu = sum_t w_t u_t u_t^T 
     S_n = S0 + Suu + M0 V0^-1 M0^T - M_n V_n^-1 M_n^T.
 
 The prior is set on the standardised scale: M0 = 0; E[Psi] = ``direction_noise``^2 I; V0 = diag(1, ..., 1, 1) /
-``direction_noise``^2, so that a priori the slope entries have a standard deviation of about 1 (a field may turn the
+``direction_noise``^2 (the slope entries scaled by ``slope_scale``^2, default 1, :func:`field_prior`), so that a
+priori the slope entries have a standard deviation of about 1 (a field may turn the
 direction by about a radian per radius of the data, i.e. curvature radii down to the data's own size) and the
 offset about 1 (a unit direction).
 """
@@ -168,7 +169,7 @@ def field_observations(
     return FieldObservations(z=z, u=u, w=w, centre=centre, radius=radius)
 
 
-def field_prior(dim: int, *, direction_noise: float = 0.2, extra_dof: float = 2.0,
+def field_prior(dim: int, *, direction_noise: float = 0.2, extra_dof: float = 2.0, slope_scale: float = 1.0,
                 dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> FieldPrior:
     """The weakly informative MNIW prior of the module docstring, on the standardised scale.
 
@@ -177,14 +178,19 @@ def field_prior(dim: int, *, direction_noise: float = 0.2, extra_dof: float = 2.
         direction_noise: prior expected standard deviation of the direction noise (unit vectors; radians for small
             errors).
         extra_dof: nu0 - d - 1 (> 0): the weight of that expectation.
+        slope_scale: prior standard deviation of the slope entries (> 0; per radius of the data): V0 =
+            diag(slope_scale^2, ..., slope_scale^2, 1) / ``direction_noise``^2. 1 lets a field turn the direction
+            by about a radian per radius; larger admits tighter curves and charges a gentle one a larger Occam
+            factor.
     """
-    if not (direction_noise > 0 and extra_dof > 0):
-        raise InvalidArgumentError("direction_noise and extra_dof must be > 0")
+    if not (direction_noise > 0 and extra_dof > 0 and slope_scale > 0):
+        raise InvalidArgumentError("direction_noise, extra_dof and slope_scale must be > 0")
     p = dim + 1
     dof = dim + 1.0 + extra_dof
+    spread = torch.tensor([float(slope_scale) ** 2] * dim + [1.0], dtype=dtype, device=device)
     return FieldPrior(
         mean=torch.zeros(dim, p, dtype=dtype, device=device),
-        row_covariance=torch.eye(p, dtype=dtype, device=device) / direction_noise**2,
+        row_covariance=torch.diag(spread) / direction_noise**2,
         dof=torch.tensor(dof, dtype=dtype, device=device),
         scale=torch.eye(dim, dtype=dtype, device=device) * direction_noise**2 * (dof - dim - 1.0),
     )

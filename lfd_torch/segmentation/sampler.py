@@ -298,6 +298,7 @@ HYPERPARAMETER_RANGES: dict[str, tuple[type, float, float, bool, bool]] = {
     "robust_dof": (float, 0.0, 1e6, False, True),
     "position_weight": (float, 0.0, 1.0, True, True),
     "straight_weight": (float, 0.0, 1.0, True, False),
+    "slope_scale": (float, 0.0, 1e3, False, True),
     "n_chains": (int, 1, 64, True, True),
     "n_iterations": (int, 1, 10_000, True, True),
     "burn_in": (float, 0.0, 1.0, True, False),
@@ -350,6 +351,8 @@ class BetaProcessHMMSampler:
         direction_noise: prior expected standard deviation of the direction noise of a state's field
             (:func:`~lfd_torch.segmentation.field.field_prior`).
         extra_dof: nu0 - d - 1 of the field prior (its weight).
+        slope_scale: prior standard deviation of a field's slope entries per radius of the data
+            (:func:`~lfd_torch.segmentation.field.field_prior`).
         robust_dof: nu of the Student-t direction emission (None: Gaussian), see :mod:`.field`.
         position_weight: tau of the tempered position term of the emission (module docstring, "Position"), in
             [0, 1]; None: 1 / D, D the minimum duration in grid samples; 0: directions alone.
@@ -379,6 +382,7 @@ class BetaProcessHMMSampler:
         stickiness: float = 25.0,
         direction_noise: float = 0.2,
         extra_dof: float = 2.0,
+        slope_scale: float = 1.0,
         robust_dof: float | None = 4.0,
         position_weight: float | None = 0.0,
         straight_weight: float = 0.0,
@@ -395,7 +399,7 @@ class BetaProcessHMMSampler:
         check_hyperparameters(
             feature_mass=feature_mass, feature_concentration=feature_concentration,
             transition_concentration=transition_concentration, stickiness=stickiness,
-            direction_noise=direction_noise, extra_dof=extra_dof, robust_dof=robust_dof,
+            direction_noise=direction_noise, extra_dof=extra_dof, slope_scale=slope_scale, robust_dof=robust_dof,
             position_weight=position_weight, straight_weight=straight_weight, n_chains=n_chains,
             n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
             birth_window=birth_window, birth_prior_mix=birth_prior_mix,
@@ -411,6 +415,7 @@ class BetaProcessHMMSampler:
         self.position_weight = None if position_weight is None else float(position_weight)
         self.straight_weight = float(straight_weight)
         self.extra_dof = float(extra_dof)
+        self.slope_scale = float(slope_scale)
         self.n_chains = int(n_chains)
         self.n_iterations = int(n_iterations)
         self.burn_in = float(burn_in)
@@ -512,7 +517,7 @@ class _Run:
                                       speed_floor=noise[1])
         if prior is None:
             prior = field_prior(self.d, direction_noise=cfg.direction_noise, extra_dof=cfg.extra_dof,
-                                dtype=self.dtype, device=self.device)
+                                slope_scale=cfg.slope_scale, dtype=self.dtype, device=self.device)
         self.prior = prior
         self.mass = torch.full((self.C,), cfg.feature_mass, dtype=self.dtype, device=self.device)
         self.alpha = torch.full((self.C,), cfg.transition_concentration, dtype=self.dtype, device=self.device)

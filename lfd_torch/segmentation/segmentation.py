@@ -981,6 +981,7 @@ def segment(
     max_samples: int = 80,
     direction_noise: float = 0.2,
     extra_dof: float = 30.0,
+    slope_scale: float = 1.0,
     robust_dof: float | None = 4.0,
     position_weight: float | None = None,
     straight_weight: float = 0.5,
@@ -1016,6 +1017,9 @@ def segment(
         direction_noise: tolerance of a state's direction field, the prior expected direction noise (unit
             vectors, ~radians).
         extra_dof: weight of that prior expectation (pseudo-observations of the noise covariance).
+        slope_scale: prior standard deviation of a field's slope per radius of the data (:func:`.field.field_prior`;
+            1: a field turns the direction by about a radian per radius). Measured, not the default: 3 and 10 trade
+            straight and multi-demonstration cases against single curved demonstrations (README).
         position_weight: tau of the tempered position Gaussian of every state, in [0, 1]; None: 1 / D (D the
             minimum duration in grid samples, the default); 0: directions alone (:mod:`.sampler`, "Position").
         straight_weight: prior probability that a state's field is straight (slope 0) in the collapsed score, in
@@ -1060,7 +1064,8 @@ def segment(
     sampler = BetaProcessHMMSampler(
         feature_mass=feature_mass, feature_concentration=feature_concentration,
         transition_concentration=transition_concentration, stickiness=stickiness,
-        direction_noise=direction_noise, extra_dof=extra_dof, robust_dof=robust_dof, position_weight=position_weight,
+        direction_noise=direction_noise, extra_dof=extra_dof, slope_scale=slope_scale, robust_dof=robust_dof,
+        position_weight=position_weight,
         straight_weight=straight_weight, n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
         birth_window=birth_window, birth_prior_mix=birth_prior_mix,
         resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
