@@ -1018,7 +1018,7 @@ def segment(
             vectors, ~radians).
         extra_dof: weight of that prior expectation (pseudo-observations of the noise covariance).
         slope_scale: prior standard deviation of a field's slope per radius of the data (:func:`.field.field_prior`;
-            1: a field turns the direction by about a radian per radius). Measured, not the default: 3 and 10 trade
+            1: a field turns the direction by about a radian per radius). Measured, not the default: 3 trades
             straight and multi-demonstration cases against single curved demonstrations (README).
         position_weight: tau of the tempered position Gaussian of every state, in [0, 1]; None: 1 / D (D the
             minimum duration in grid samples, the default); 0: directions alone (:mod:`.sampler`, "Position").
