@@ -112,6 +112,18 @@ consensus count. A state may recur in several steps (two runs of one state are t
 
 Attractor g_m: the mean over the pieces of step m of their last sample (the paper's eq. under Table I writes a
 sum; it means the mean); the last step of every route ends at the task attractor ``Demos.attractor``.
+On LASA Multi_Models_1-4 g_m is within 2 % of the data span of the nearest of its demonstrations, but 1.6 / 2.9 /
+2.5 / 4.5 % from the farthest (``experiments/bench_segmentation_seeds.py``): the demonstrations switch at places
+spread along and across their paths, and the mean of points along a curve lies inside it. Tried and not kept
+(one-off patches, seed 0): (1) g_m as the mode of the product over pieces of their end-point densities
+sum_tau P(tau) N(g; x(tau - 1), noise) with P the change-point posterior below (item 3) over its whole window:
+1.1 / 1.6 / 1.1 / 2.7 % from the farthest demonstration, but up to 21 % of the span from every piece's end (the
+posterior's tails reach where the paths happen to meet), so a primitive would converge far from where its pieces
+end; (2) the same within each switch's central 99 % credible interval: 1.5 / 2.8 / 2.5 / 4.4 % (the posteriors are
+narrow, the mode is the mean again); (3) the sample of those intervals that all paths pass nearest (least
+squares): 1.6 / 3.3 / 3.3 / 3.7 %. On Multi_Models_4 route {0-3} no point within 5 % of the span of the first
+step's four ends is within 2 % of all four demonstrations (the best is 3.1 %): there an attractor at the end of
+the step cannot lie on every demonstration.
 Subtask space A_m (paper Sec. III-B/IV; NOTES.md sec. 2 reads it as "the emission Gaussian(s) of the state(s) of
 step m"). The emission here models directions, not positions, so the position Gaussians are taken from the samples
 at the model's resolution:
