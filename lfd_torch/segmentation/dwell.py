@@ -50,7 +50,12 @@ the two one-sided least-squares speeds over t - k .. t and t .. t + k, one of wh
 the corner is): the chord's excess at 108-137 degree corners falls from 0.3 to under 0.1, but a pause's c falls
 about as much (2.3 to 1.1: the one-sided windows reach out of the rest), and on the 280 cases every switch fell
 from 86.8 to 81.8 % (scoop with pauses 9 / 9 -> 4 / 3 of 10 with 1 / 4 demonstrations) while straight_const_3d stayed
-at 6 / 6 (a one-off patch, not stored).
+at 6 / 6 (a one-off patch, not stored). A fourth: a turn covariate in place of c, the angle between the mean grid
+directions of the D points before t and of the D points from t on (or its log), as the response of the same
+regression; on the four constant-speed families that hold the misses (straight 3-D, curved 2-D and 3-D, scoop; 80
+cases) every switch on 49 and 50 of 80 against 47 (a one-off patch, not stored): the shift it learns (0.8-1.4 rad
+over a noise of 0.2-0.5) charges a switch placed where the path turns smoothly, but a mild corner between short
+legs turns those mean directions by little more than a curved leg does.
 
 It is an emission of the phase-expanded HMM (phase 0: the first point of a run, any other phase: inside a run), so
 every move stays exact: the forward filter and FFBS add log N(c_t; mu + delta, sigma^2) to the phase-0 states and
