@@ -22,7 +22,12 @@ Labellings: for ``--case FAMILY N_DEMOS SEED`` (the data of ``bench_segmentation
 returns (default settings), b = the truth on the grid; for ``--shape`` (LASA, all 7 demonstrations) a = the
 default labelling, b = the labelling at ``--tight`` (``direction_noise``, default 0.05). Printed per model: the
 emission gap b - a (nats; the transitions charge about 5 nats per extra switch per demonstration on top) and
-each labelling's total, which says which tolerance the data prefer.
+each labelling's total, which says which tolerance the data prefer. Then the tolerance learned by type-II
+maximum likelihood over :data:`GRID` (rho, the AR scale and the white scale; a log-uniform prior, flat on the
+grid): the setting with the highest score of either labelling, the score being this emission plus the rest of
+the sampler's collapsed score (transitions, initial state, features, dwell; ``_collapsed_score_parts`` without
+its "emission"), and the gap b - a of those scores under it: positive means b is the mode under a learned smooth
+tolerance.
 
     OMP_NUM_THREADS=1 .venv/bin/python experiments/diagnose_tolerance.py --shape Multi_Models_1 Multi_Models_3 \
         --case straight_const_3d 4 3 --case scoop_const_3d 1 0 --json results/tables/diagnose_tolerance.json
@@ -36,6 +41,7 @@ import math
 import torch
 from torch import Tensor
 
+import lfd_torch.segmentation.sampler as sampler_module
 from lfd_torch.data import load_lasa
 from lfd_torch.segmentation import runs, segment
 from lfd_torch.segmentation.synthetic import FAMILIES
@@ -51,6 +57,9 @@ MODELS = (
     ("AR 0.97, 0.2 + 0.02", 0.97, 0.2**2 * (1 - 0.97**2), 0.02**2),
     ("AR 0.9, 0.1 + 0.02", 0.9, 0.1**2 * (1 - 0.9**2), 0.02**2),
 )
+#: Type-II grid: (rho, stationary scale of the AR deviation, white scale), rad; rho = 0 rows are white only.
+GRID = tuple((rho, a, w) for rho in (0.8, 0.9, 0.95, 0.97, 0.99) for a in (0.05, 0.1, 0.2, 0.4)
+             for w in (0.01, 0.02, 0.05)) + tuple((0.0, 0.0, w) for w in (0.02, 0.05, 0.1, 0.2, 0.4))
 
 
 def smooth_tolerance_evidence(z: Tensor, u: Tensor, c: Tensor, labels: list[Tensor], rho: Tensor, q: Tensor,
@@ -118,14 +127,37 @@ def _labels(seg) -> list[Tensor]:
     return [seg.sampler.states[i, : len(seg.info["grid"][i])].cpu() for i in range(seg.n_sequences)]
 
 
-def _score(name: str, z: Tensor, u: Tensor, c: Tensor, a: list[Tensor], b: list[Tensor]) -> dict:
+def _rest_of_score(run, hyper: dict, labels: list[Tensor], features: Tensor) -> float:
+    """The sampler's collapsed score of a grid labelling without its emission term (transitions, initial state,
+    features, dwell)."""
+    s = torch.stack([torch.cat([lab, lab[-1:].expand(run.T - lab.shape[0])]) for lab in labels]).to(run.device)
+    h = [torch.tensor([hyper[k]], dtype=run.dtype, device=run.device)
+         for k in ("transition_concentration", "stickiness", "feature_mass")]
+    phase = sampler_module.duration_phases(s[None], run.D)
+    parts = run._collapsed_score_parts(s[None], features[None].to(run.device), phase, *h)
+    return float(sum(v[0] for k, v in parts.items() if k != "emission"))
+
+
+def _score(name: str, run, hyper: dict, a: tuple[list[Tensor], Tensor], b: tuple[list[Tensor], Tensor]) -> dict:
+    """a, b: (labels, features) of two labellings of the run's grid."""
+    z, u, c = _grid_view(run, 0.2)
     rho, q, tau2 = (torch.tensor([m[j] for m in MODELS], dtype=u.dtype) for j in (1, 2, 3))
-    ea = smooth_tolerance_evidence(z, u, c, a, rho, q, tau2)
-    eb = smooth_tolerance_evidence(z, u, c, b, rho, q, tau2)
-    extra = [int(runs(y)[0].numel() - runs(x)[0].numel()) for x, y in zip(a, b)]
+    ea = smooth_tolerance_evidence(z, u, c, a[0], rho, q, tau2)
+    eb = smooth_tolerance_evidence(z, u, c, b[0], rho, q, tau2)
+    extra = [int(runs(y)[0].numel() - runs(x)[0].numel()) for x, y in zip(a[0], b[0])]
+    g_rho = torch.tensor([g[0] for g in GRID], dtype=u.dtype)
+    g_q = torch.tensor([g[1] ** 2 * (1.0 - g[0] ** 2) for g in GRID], dtype=u.dtype)
+    g_tau2 = torch.tensor([g[2] ** 2 for g in GRID], dtype=u.dtype)
+    sa = smooth_tolerance_evidence(z, u, c, a[0], g_rho, g_q, g_tau2) + _rest_of_score(run, hyper, *a)
+    sb = smooth_tolerance_evidence(z, u, c, b[0], g_rho, g_q, g_tau2) + _rest_of_score(run, hyper, *b)
+    best = int(torch.maximum(sa, sb).argmax())
     return {"case": name, "extra_switches_b": extra,
             "models": [{"model": m[0], "gap_b_minus_a": round(float(gb - ga), 1), "total_a": round(float(ga), 1),
-                        "total_b": round(float(gb), 1)} for m, ga, gb in zip(MODELS, ea, eb)]}
+                        "total_b": round(float(gb), 1)} for m, ga, gb in zip(MODELS, ea, eb)],
+            "learned": {"rho": GRID[best][0], "ar_scale": GRID[best][1], "white_scale": GRID[best][2],
+                        "score_gap_b_minus_a": round(float(sb[best] - sa[best]), 1),
+                        "white_best": round(float(torch.maximum(sa, sb)[g_rho == 0].max()), 1),
+                        "score_best": round(float(torch.maximum(sa, sb)[best]), 1)}}
 
 
 def synthetic_case(family: str, n_demos: int, seed: int) -> dict:
@@ -133,10 +165,11 @@ def synthetic_case(family: str, n_demos: int, seed: int) -> dict:
     syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n_demos)
     with captured_runs() as captured:
         seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed))
-    z, u, c = _grid_view(captured[-1], 0.2)
     truth = [(torch.tensor(seg.info["grid"][i]).unsqueeze(-1) >= syn.switch_times[i].cpu().unsqueeze(0)).sum(-1)
              for i in range(n_demos)]
-    return _score(f"{family} {n_demos} {seed}", z, u, c, _labels(seg), truth)
+    M = int(syn.switch_times.shape[1]) + 1
+    return _score(f"{family} {n_demos} {seed}", captured[-1], seg.sampler.hyperparameters,
+                  (_labels(seg), seg.sampler.features), (truth, torch.ones(n_demos, M, dtype=torch.bool)))
 
 
 def lasa_case(shape: str, tight: float) -> dict:
@@ -144,9 +177,9 @@ def lasa_case(shape: str, tight: float) -> dict:
     demos = load_lasa(shape)
     with captured_runs() as captured:
         seg = segment(demos, generator=torch.Generator().manual_seed(0))
-    z, u, c = _grid_view(captured[-1], 0.2)
     tight_seg = segment(demos, generator=torch.Generator().manual_seed(0), direction_noise=tight)
-    return _score(f"{shape} (b: direction_noise={tight})", z, u, c, _labels(seg), _labels(tight_seg))
+    return _score(f"{shape} (b: direction_noise={tight})", captured[-1], seg.sampler.hyperparameters,
+                  (_labels(seg), seg.sampler.features), (_labels(tight_seg), tight_seg.sampler.features))
 
 
 def main() -> None:
@@ -171,12 +204,20 @@ def main() -> None:
         print(f"| {r['case']} | {r['extra_switches_b']} | " + " | ".join(cells) + " |")
     print("\ncells: emission gap b - a in nats (total of a); about 5 nats per extra switch per demonstration come on "
           "top from the transitions")
+    print("\n| labellings (a -> b) | learned (rho, AR scale, white scale) | score gap b - a under it | best score | "
+          "best with a white tolerance |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        lr = r["learned"]
+        print(f"| {r['case']} | {lr['rho']}, {lr['ar_scale']}, {lr['white_scale']} | {lr['score_gap_b_minus_a']} | "
+              f"{lr['score_best']} | {lr['white_best']} |")
     if args.json:
         import json
 
         from lfd_torch.store import atomic_write, git_sha
 
-        out = {"models": [list(m) for m in MODELS], "tight": args.tight, "git_sha": git_sha(), "rows": rows}
+        out = {"models": [list(m) for m in MODELS], "grid": [list(g) for g in GRID], "tight": args.tight,
+               "git_sha": git_sha(), "rows": rows}
         atomic_write(args.json, lambda p: p.write_text(json.dumps(out, indent=1)))
 
 
