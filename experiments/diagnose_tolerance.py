@@ -23,14 +23,17 @@ returns (default settings), b = the truth on the grid; for ``--shape`` (LASA, al
 default labelling, b = the labelling at ``--tight`` (``direction_noise``, default 0.05). Printed per model: the
 emission gap b - a (nats; the transitions charge about 5 nats per extra switch per demonstration on top) and
 each labelling's total, which says which tolerance the data prefer. Then the tolerance learned by type-II
-maximum likelihood over :data:`GRID` (rho, the AR scale and the white scale; a log-uniform prior, flat on the
-grid): the setting with the highest score of either labelling, the score being this emission plus the rest of
-the sampler's collapsed score (transitions, initial state, features, dwell; ``_collapsed_score_parts`` without
-its "emission"), and the gap b - a of those scores under it: positive means b is the mode under a learned smooth
-tolerance.
+maximum likelihood over :data:`GRID` (rho, the AR scale and the white scale; a uniform prior on the grid): the
+setting with the highest score of either labelling, the score being this emission plus the rest of the sampler's
+collapsed score (transitions, initial state, features, dwell; ``_collapsed_score_parts`` without its "emission",
+with the transition hyperparameters of the default run), and the gap b - a of those scores under it: positive
+means b is the better of the two under a learned smooth tolerance. The table in README and
+``results/tables/diagnose_tolerance.json``:
 
-    OMP_NUM_THREADS=1 .venv/bin/python experiments/diagnose_tolerance.py --shape Multi_Models_1 Multi_Models_3 \
-        --case straight_const_3d 4 3 --case scoop_const_3d 1 0 --json results/tables/diagnose_tolerance.json
+    OMP_NUM_THREADS=1 .venv/bin/python experiments/diagnose_tolerance.py --shape Multi_Models_1 Multi_Models_2 \
+        Multi_Models_3 Multi_Models_4 --case straight_const_3d 1 1 --case straight_const_3d 4 1 \
+        --case straight_const_3d 4 3 --case curved_const_2d 1 6 --case scoop_const_3d 1 0 \
+        --case scoop_const_3d 4 1 --json results/tables/diagnose_tolerance.json
 """
 
 from __future__ import annotations
