@@ -34,6 +34,11 @@ means b is the better of the two under a learned smooth tolerance. The table in 
         Multi_Models_3 Multi_Models_4 --case straight_const_3d 1 1 --case straight_const_3d 4 1 \
         --case straight_const_3d 4 3 --case curved_const_2d 1 6 --case scoop_const_3d 1 0 \
         --case scoop_const_3d 4 1 --json results/tables/diagnose_tolerance.json
+
+and every case the default settings miss (``diagnose_tolerance_missed.json``):
+
+    OMP_NUM_THREADS=1 .venv/bin/python experiments/diagnose_tolerance.py \
+        --missed results/tables/bench_segmentation_segment.json --json results/tables/diagnose_tolerance_missed.json
 """
 
 from __future__ import annotations
@@ -190,8 +195,16 @@ def main() -> None:
     ap.add_argument("--shape", nargs="*", default=[], help="LASA shapes (all 7 demonstrations)")
     ap.add_argument("--tight", type=float, default=0.05, help="direction_noise of labelling b of a LASA shape")
     ap.add_argument("--case", nargs=3, action="append", default=[], metavar=("FAMILY", "N_DEMOS", "SEED"))
+    ap.add_argument("--missed", default=None, metavar="TABLE",
+                    help="also every case of this bench_segmentation.py --json table whose switches were not all found")
     ap.add_argument("--json", default=None, help="write the rows to this JSON file")
     args = ap.parse_args()
+    if args.missed:
+        import json
+
+        rows_in = json.loads(open(args.missed).read())["synthetic"]
+        args.case += [[r["family"], r["n_demos"], r["seed"]] for r in rows_in
+                      if r.get("method", "segment") == "segment" and not r["all_switches"]]
     for family, _, _ in args.case:
         if family not in FAMILIES:
             ap.error(f"unknown family {family!r}")
