@@ -30,7 +30,7 @@ from lfd_torch.segmentation.synthetic import FAMILIES
 from bench_segmentation import data_seed, map_cases, score_case, switches_from_labels
 from bench_segmentation_seeds import seed_stable
 from diagnose_segmentation import captured_runs
-from diagnose_tolerance import GRID, _grid_view, _labels, _rest_of_score, smooth_tolerance_evidence
+from diagnose_tolerance import GRID, _grid_view, _labels, _rest_of_score, grid_settings, smooth_tolerance_evidence
 
 #: the tolerances (rad) whose map-search labellings are proposed
 CANDIDATES = (0.2, 0.1, 0.05, 0.02)
@@ -45,9 +45,7 @@ def select(demos, seed: int):
             segs.append(segment(demos, generator=torch.Generator().manual_seed(seed), direction_noise=sigma))
         captured_run = captured[-1] if captured_run is None else captured_run  # the grid is the same for all
     z, u, c = _grid_view(captured_run, CANDIDATES[0])
-    g_rho = torch.tensor([g[0] for g in GRID], dtype=u.dtype)
-    g_q = torch.tensor([g[1] ** 2 * (1.0 - g[0] ** 2) for g in GRID], dtype=u.dtype)
-    g_tau2 = torch.tensor([g[2] ** 2 for g in GRID], dtype=u.dtype)
+    g_rho, g_q, g_tau2 = grid_settings(u.dtype)
     hyper = segs[0].sampler.hyperparameters
     scores = torch.stack([smooth_tolerance_evidence(z, u, c, _labels(s), g_rho, g_q, g_tau2)
                           + _rest_of_score(captured_run, hyper, _labels(s), s.sampler.features) for s in segs])

@@ -125,6 +125,13 @@ def smooth_tolerance_evidence(z: Tensor, u: Tensor, c: Tensor, labels: list[Tens
     return total
 
 
+def grid_settings(dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor, Tensor]:
+    """(rho, q, tau^2) of every :data:`GRID` setting, each (G,): q = scale^2 (1 - rho^2) keeps the AR scale."""
+    rho = torch.tensor([g[0] for g in GRID], dtype=dtype)
+    q = torch.tensor([g[1] ** 2 * (1.0 - g[0] ** 2) for g in GRID], dtype=dtype)
+    return rho, q, torch.tensor([g[2] ** 2 for g in GRID], dtype=dtype)
+
+
 def _grid_view(run, direction_noise: float) -> tuple[Tensor, Tensor, Tensor]:
     o = run.obs
     c = direction_noise**2 * (1.0 / o.w.clamp_min(1e-8) - 1.0)
@@ -153,9 +160,7 @@ def _score(name: str, run, hyper: dict, a: tuple[list[Tensor], Tensor], b: tuple
     ea = smooth_tolerance_evidence(z, u, c, a[0], rho, q, tau2)
     eb = smooth_tolerance_evidence(z, u, c, b[0], rho, q, tau2)
     extra = [int(runs(y)[0].numel() - runs(x)[0].numel()) for x, y in zip(a[0], b[0])]
-    g_rho = torch.tensor([g[0] for g in GRID], dtype=u.dtype)
-    g_q = torch.tensor([g[1] ** 2 * (1.0 - g[0] ** 2) for g in GRID], dtype=u.dtype)
-    g_tau2 = torch.tensor([g[2] ** 2 for g in GRID], dtype=u.dtype)
+    g_rho, g_q, g_tau2 = grid_settings(u.dtype)
     sa = smooth_tolerance_evidence(z, u, c, a[0], g_rho, g_q, g_tau2) + _rest_of_score(run, hyper, *a)
     sb = smooth_tolerance_evidence(z, u, c, b[0], g_rho, g_q, g_tau2) + _rest_of_score(run, hyper, *b)
     best = int(torch.maximum(sa, sb).argmax())
