@@ -630,6 +630,9 @@ def test_bad_input_typed_errors():
         segment([good], generator=g, min_length=0)
     with pytest.raises(InvalidArgumentError):
         segment([good], generator=g, max_samples=4)
+    with pytest.raises(InvalidArgumentError, match="tolerance_correlation"):  # needs run starts: D >= 2 grid points
+        segment([torch.randn(1000, 2, generator=g, dtype=F64).cumsum(0)], generator=g, min_length=0.01, max_samples=8,
+                dwell_cue=False, tolerance_correlation=None)
     with pytest.raises(ValueError):
         segment([good], generator=g, stickiness=-1.0)
     with pytest.raises(TypeError):
@@ -647,6 +650,7 @@ def test_bad_input_typed_errors():
         ("stickiness", float("inf")), ("birth_window", 1.5), ("birth_prior_mix", 1.0), ("burn_in", 1.0),
         ("direction_noise", 0.0), ("robust_dof", -1.0), ("progress", 1), ("position_weight", 1.5),
         ("position_weight", float("nan")), ("position_weight", "1/D"), ("straight_weight", 1.0), ("straight_weight", -0.1),
+        ("tolerance_correlation", 1.0), ("tolerance_correlation", float("nan")),
     ],
 )  # fmt: skip
 def test_hyperparameters_that_scale_the_cost_are_bounded(name, value):
@@ -1018,21 +1022,27 @@ def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(m
             assert float(cos.median()) > 0.9, k
 
 
-@pytest.mark.parametrize(("position_weight", "straight_weight", "dwell_cue"),
-                         [(0.0, 0.0, False), (None, 0.0, False), (None, 0.5, False), (None, 0.5, True)],
-                         ids=["directions", "with_position", "with_straight_states", "with_dwell"])
+@pytest.mark.parametrize(("position_weight", "straight_weight", "dwell_cue", "tolerance"),
+                         [(0.0, 0.0, False, None), (None, 0.0, False, None), (None, 0.5, False, None),
+                          (None, 0.5, True, None), (None, 0.5, True, (0.9, 0.1))],
+                         ids=["directions", "with_position", "with_straight_states", "with_dwell",
+                              "with_correlated_tolerance"])
 def test_map_search_batched_scores_equal_the_full_score_one_candidate_at_a_time(monkeypatch, position_weight,
-                                                                                straight_weight, dwell_cue):
+                                                                                straight_weight, dwell_cue, tolerance):
     """The mode search's shortcuts (``_Run._climb_to_mode``) against the plain computation: the reassignment
     and shift scores updated from the current score by the terms a move touches equal ``_collapsed_score`` of every
     candidate, and the batched Viterbi relabelling of several labellings (the look-ahead and split candidates)
     equals relabelling them one at a time; on the returned labelling and on each of its splits (more states,
-    other runs)."""
+    other runs). With a correlated tolerance (rho, sigma) too, where a sample's term depends on whether it starts
+    a run."""
     syn = synthetic(*MUTATION_CASE)
     runs = capture_runs(monkeypatch)
     seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="map",
-                  position_weight=position_weight, straight_weight=straight_weight, dwell_cue=dwell_cue)
+                  position_weight=position_weight, straight_weight=straight_weight, dwell_cue=dwell_cue,
+                  tolerance_correlation=0.0 if tolerance is None else None)
     run, res = runs[-1], seg.sampler
+    if tolerance is not None:
+        run._set_tolerance(*tolerance)
     hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
              for k in ("transition_concentration", "stickiness", "feature_mass")]
 

@@ -276,6 +276,61 @@ def test_additive_field_likelihood_against_scipy_and_at_rest(generator, dof):
     torch.testing.assert_close(scaled[:, 0] - scaled[:, 1], half.expand(n), atol=1e-4, rtol=0)
 
 
+def test_correlated_tolerance_is_the_stacked_ar1_gaussian(generator):
+    """The correlated tolerance (``correlated_tolerance_observations``) against its model written out: without
+    velocity noise (w = 1) the first sample's density times the continuing samples' densities of a run equals the
+    density of the stacked directions, N(vec(B z_t), R (x) Psi) with R_ts = rho^|t - s| / (1 - rho^2) (scipy); with
+    rho = 0 and another scale sigma the first-sample view is the additive white model with tolerance sigma; with
+    rho = 0 and sigma = sigma_u the observations are returned as they are."""
+    from lfd_torch.segmentation.field import (
+        FieldObservations,
+        correlated_tolerance_observations,
+        correlated_tolerance_prior,
+        field_log_likelihood,
+        field_log_likelihood_additive,
+        field_prior,
+    )
+
+    d, n, rho, su = 2, 7, 0.8, 0.2
+    z = torch.cat([torch.randn(1, n, d, generator=generator, dtype=F64), torch.ones(1, n, 1, dtype=F64)], -1)
+    u = torch.randn(1, n, d, generator=generator, dtype=F64)
+    b = torch.randn(1, d, d + 1, generator=generator, dtype=F64) * 0.3
+    a = torch.randn(1, d, d, generator=generator, dtype=F64) * 0.1
+    psi = a @ a.transpose(-1, -2) + 0.02 * torch.eye(d, dtype=F64)
+    obs = FieldObservations(z=z, u=u, w=torch.ones(1, n, dtype=F64), centre=torch.zeros(d, dtype=F64),
+                            radius=torch.tensor(1.0, dtype=F64))
+    start, cont = correlated_tolerance_observations(obs, rho, su)
+    ll_start = field_log_likelihood(*start, b, psi)[0, :, 0]
+    ll_cont = field_log_likelihood(*cont, b, psi)[0, :, 0]
+    got = ll_start[0] + ll_cont[1:].sum()
+    t = torch.arange(n, dtype=F64)
+    r = rho ** (t[:, None] - t[None, :]).abs() / (1 - rho**2)
+    mean = (z[0] @ b[0].T).reshape(-1).numpy()
+    ref = stats.multivariate_normal(mean, torch.kron(r, psi[0]).numpy()).logpdf(u[0].reshape(-1).numpy())
+    assert got.item() == pytest.approx(ref, rel=1e-10)
+    # a run of one state anywhere in the sequence: its first sample is the stationary start
+    ll_mid = ll_start[3] + ll_cont[4:].sum()
+    ref_mid = stats.multivariate_normal(mean[3 * d:], torch.kron(r[3:, 3:], psi[0]).numpy()).logpdf(
+        u[0, 3:].reshape(-1).numpy())
+    assert ll_mid.item() == pytest.approx(ref_mid, rel=1e-10)
+    # rho = 0, scale sigma: the additive white model u ~ N(B z, sigma^2 I + c_t I)
+    w = torch.rand(1, n, generator=generator, dtype=F64) * 0.9 + 0.05
+    obs_w = FieldObservations(z=z, u=u, w=w, centre=obs.centre, radius=obs.radius)
+    sigma = 0.07
+    start, cont = correlated_tolerance_observations(obs_w, 0.0, su, sigma)
+    iso = (sigma**2 * torch.eye(d, dtype=F64))[None]
+    torch.testing.assert_close(field_log_likelihood(*start, b, iso),
+                               field_log_likelihood_additive(z, u, w, b, iso, direction_noise=su))
+    same, same_c = correlated_tolerance_observations(obs_w, 0.0, su)
+    assert all(x is y for x, y in zip(same, (z, u))) and torch.equal(same[2], w) and same_c is same
+    # the prior: E[Psi] and V0 scaled so that the prior of B (Psi (x) V0) is unchanged
+    prior = field_prior(d, direction_noise=su)
+    scaled = correlated_tolerance_prior(prior, rho, sigma / su)
+    f = (sigma / su) ** 2 * (1 - rho**2)
+    torch.testing.assert_close(scaled.scale, prior.scale * f)
+    torch.testing.assert_close(scaled.row_covariance * scaled.scale[0, 0], prior.row_covariance * prior.scale[0, 0])
+
+
 def test_field_marginal_likelihood_is_the_chib_identity(generator):
     """MNIW evidence = likelihood x prior / posterior at any (B, Psi) (exact for a conjugate model)."""
     from lfd_torch.segmentation.field import (

@@ -83,7 +83,7 @@ __all__ = ["FieldPrior", "FieldObservations", "field_observations", "field_prior
            "field_posterior", "field_log_marginal_likelihood", "straight_field_prior", "field_mixture_evidence",
            "field_mixture_posterior_mean", "sample_field", "field_log_density",
            "field_log_likelihood",
-           "field_log_likelihood_additive"]
+           "field_log_likelihood_additive", "correlated_tolerance_observations", "correlated_tolerance_prior"]
 
 
 
@@ -422,3 +422,76 @@ def field_log_likelihood_additive(
     nu = float(dof)
     const = math.lgamma(0.5 * (nu + d)) - math.lgamma(0.5 * nu) - 0.5 * d * math.log(nu * math.pi)
     return -half_logdet + const - 0.5 * (nu + d) * torch.log1p(q / nu)
+
+
+
+def correlated_tolerance_prior(prior: FieldPrior, rho: float, ratio: float = 1.0) -> FieldPrior:
+    """The field prior of the tolerance of :func:`correlated_tolerance_observations`: Psi is now the covariance of the
+    innovations xi_t, whose stationary deviation Psi / (1 - rho^2) is ``ratio``^2 times the expectation of ``prior``,
+    so E[Psi] scales by f = ratio^2 (1 - rho^2) and V0 by 1 / f (the prior of B, Psi (x) V0, is unchanged). rho = 0
+    and ratio = 1 return ``prior``."""
+    f = ratio**2 * (1.0 - rho**2)
+    if f == 1.0:
+        return prior
+    return FieldPrior(mean=prior.mean, row_covariance=prior.row_covariance / f, dof=prior.dof, scale=prior.scale * f)
+
+
+def correlated_tolerance_observations(obs: FieldObservations, rho: float, direction_noise: float,
+                                      scale: float | None = None
+                                      ) -> tuple[tuple[Tensor, Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]:
+    """Regressors, directions and weights of a correlated (AR(1)) direction tolerance, for a sample that starts a
+    run of its state and for one that continues it.
+
+    The white emission lets a direction leave its field by independent noise: u_t = B_k z_t + e_t. Along a human
+    curve the deviation drifts and persists, at a corner it jumps; a tolerance that is a smooth process charges the
+    jump and not the drift. Within a run of state k the deviation eta_t = u_t - B_k z_t is AR(1),
+
+        eta_t = rho eta_(t-1) + xi_t,  xi_t ~ N(0, Psi_k)  (plus the propagated velocity noise c_t),
+        eta at a run's first sample ~ N(0, Psi_k / (1 - rho^2) + c_t I)  (stationary: a fresh deviation per run),
+
+    with E[Psi_k] = (1 - rho^2) sigma^2 I, sigma = ``scale`` the stationary tolerance (:func:`correlated_tolerance_prior`).
+    So (Prais-Winsten) the first sample of a run is the white emission with weight w^1_t = (1 - rho^2) sigma^2 /
+    (sigma^2 + c_t), and a later one is the regression of the difference u_t - rho u_(t-1) on z_t - rho z_(t-1) with
+    covariance Psi_k / w'_t, w'_t = s_i^2 / (s_i^2 + c_t + rho^2 c_(t-1)), s_i^2 = (1 - rho^2) sigma^2 (c_t =
+    sigma_u^2 (1 / w_t - 1) recovered from ``obs``, sigma_u = ``direction_noise``; :func:`field_observations`).
+    Both are conjugate in (B_k, Psi_k) (weighted MNIW statistics), the product over t is a proper density of u (each
+    factor is a density of u_t given u_(t-1)), and its log Jacobian is d / 2 sum_t log(weight_t). Approximation: the
+    velocity noise of consecutive differences (e_t - rho e_(t-1)) is treated as independent. rho = 0 and sigma =
+    sigma_u give the white emission of ``obs`` exactly.
+
+    Args:
+        obs: (N, T, .) observations of :func:`field_observations` made with ``direction_noise``.
+        rho: the correlation of consecutive deviations, in [0, 1).
+        direction_noise: sigma_u of ``obs``.
+        scale: sigma, the stationary tolerance (> 0); None: ``direction_noise``.
+
+    Returns:
+        (z, u, w) of a run's first sample and (z, u, w) of a continuing sample, each (N, T, p), (N, T, d), (N, T);
+        the continuing version of t = 0 is the first-sample one (it has no predecessor).
+    """
+    if not 0.0 <= rho < 1.0:
+        raise InvalidArgumentError(f"tolerance_correlation must be in [0, 1), got {rho!r}")
+    scale = direction_noise if scale is None else float(scale)
+    if not scale > 0:
+        raise InvalidArgumentError(f"scale must be > 0, got {scale!r}")
+    r2 = 1.0 - rho**2
+    if scale == direction_noise:
+        w_1 = obs.w * r2
+    else:
+        c = direction_noise**2 * (1.0 / obs.w.clamp_min(1e-8) - 1.0)  # (N, T) propagated velocity noise
+        w_1 = torch.where(obs.w > 0, r2 * scale**2 / (scale**2 + c), torch.zeros_like(obs.w))
+    start = (obs.z, obs.u, w_1)
+    if rho == 0.0:
+        return start, start
+    c = direction_noise**2 * (1.0 / obs.w.clamp_min(1e-8) - 1.0)
+
+    def previous(a: Tensor) -> Tensor:
+        return torch.cat([a[:, :1], a[:, :-1]], 1)
+
+    s2 = r2 * scale**2
+    w_c = torch.where(obs.w > 0, s2 / (s2 + c + rho**2 * previous(c)), torch.zeros_like(obs.w))
+    cont = (obs.z - rho * previous(obs.z), obs.u - rho * previous(obs.u), w_c)
+    first = torch.zeros_like(obs.w, dtype=torch.bool)
+    first[:, 0] = True
+    cont = tuple(torch.where(first.view(*first.shape, *([1] * (a.dim() - 2))), b, a) for a, b in zip(cont, start))
+    return start, cont

@@ -997,6 +997,7 @@ def segment(
     robust_dof: float | None = 4.0,
     position_weight: float | None = None,
     straight_weight: float = 0.5,
+    tolerance_correlation: float | None = 0.0,
     dwell_cue: bool = True,
     noise_model: str = "ar1",
     feature_mass: float = 2.0,
@@ -1036,6 +1037,9 @@ def segment(
             minimum duration in grid samples, the default); 0: directions alone (:mod:`.sampler`, "Position").
         straight_weight: prior probability that a state's field is straight (slope 0) in the collapsed score, in
             [0, 1); it acts through ``selection="map"`` (:mod:`.sampler`, "Straight states"); 0: every field affine.
+        tolerance_correlation: rho in [0, 1), the correlation of consecutive deviations of a direction from its
+            step's field in the collapsed score, so in ``selection="map"`` (:mod:`.sampler`, "Correlated
+            tolerance"); 0: independent deviations; None: chosen with the labelling (type-II over a grid).
         dwell_cue: the model also explains the time spent between grid points, with a learned shift at the first
             point of a run (:mod:`.dwell`): a pause marks a step boundary as far as the data show it. Needs a
             minimum duration of at least 2 grid points.
@@ -1077,7 +1081,7 @@ def segment(
         feature_mass=feature_mass, feature_concentration=feature_concentration,
         transition_concentration=transition_concentration, stickiness=stickiness,
         direction_noise=direction_noise, extra_dof=extra_dof, slope_scale=slope_scale, robust_dof=robust_dof,
-        position_weight=position_weight,
+        position_weight=position_weight, tolerance_correlation=tolerance_correlation,
         straight_weight=straight_weight, n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
         birth_window=birth_window, birth_prior_mix=birth_prior_mix,
         resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
@@ -1123,6 +1127,9 @@ def segment(
                                        "(raise min_length or max_samples)")
         crossing = [(_crossings(length, lv, t), lv) for (length, _, lv), t in zip(grid_levels, times)]
         dwell = [dwell_covariate(c, torch.arange(c.shape[0], device=c.device), lv) for c, lv in crossing]
+    if tolerance_correlation != 0.0 and duration < 2:
+        raise InvalidArgumentError(f"tolerance_correlation other than 0 needs a minimum duration of at least 2 grid "
+                                   f"points, got {duration} (raise min_length or max_samples)")
     try:
         result = sampler.run(xs, vs, generator, min_duration=duration, velocity_noise=sigma_v_t, speed_floor=s_floor,
                              dwell=dwell)
