@@ -1024,7 +1024,7 @@ def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(m
 
 @pytest.mark.parametrize(("position_weight", "straight_weight", "dwell_cue", "tolerance"),
                          [(0.0, 0.0, False, None), (None, 0.0, False, None), (None, 0.5, False, None),
-                          (None, 0.5, True, None), (None, 0.5, True, (0.9, 0.1))],
+                          (None, 0.5, True, None), (None, 0.5, True, (0.9, 0.1, 0.02))],
                          ids=["directions", "with_position", "with_straight_states", "with_dwell",
                               "with_correlated_tolerance"])
 def test_map_search_batched_scores_equal_the_full_score_one_candidate_at_a_time(monkeypatch, position_weight,

@@ -321,6 +321,15 @@ def test_correlated_tolerance_is_the_stacked_ar1_gaussian(generator):
     iso = (sigma**2 * torch.eye(d, dtype=F64))[None]
     torch.testing.assert_close(field_log_likelihood(*start, b, iso),
                                field_log_likelihood_additive(z, u, w, b, iso, direction_noise=su))
+    # the white floor tau adds tau^2 to the white noise: rho = 0 is the additive model with tolerance sigma^2 + tau^2
+    tau = 0.03
+    start, _ = correlated_tolerance_observations(obs_w, 0.0, su, sigma, tau)
+    torch.testing.assert_close(field_log_likelihood(*start, b, iso),
+                               field_log_likelihood_additive(z, u, w, b, iso + tau**2 * torch.eye(d, dtype=F64),
+                                                             direction_noise=su))
+    start, cont = correlated_tolerance_observations(obs, rho, su, floor=tau)  # w = 1: c'_t = tau^2
+    s2 = (1 - rho**2) * su**2
+    torch.testing.assert_close(cont[2][0, 1:], torch.full((n - 1,), s2 / (s2 + (1 + rho**2) * tau**2), dtype=F64))
     same, same_c = correlated_tolerance_observations(obs_w, 0.0, su)
     assert all(x is y for x, y in zip(same, (z, u))) and torch.equal(same[2], w) and same_c is same
     # the prior: E[Psi] and V0 scaled so that the prior of B (Psi (x) V0) is unchanged

@@ -437,7 +437,7 @@ def correlated_tolerance_prior(prior: FieldPrior, rho: float, ratio: float = 1.0
 
 
 def correlated_tolerance_observations(obs: FieldObservations, rho: float, direction_noise: float,
-                                      scale: float | None = None
+                                      scale: float | None = None, floor: float = 0.0
                                       ) -> tuple[tuple[Tensor, Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]:
     """Regressors, directions and weights of a correlated (AR(1)) direction tolerance, for a sample that starts a
     run of its state and for one that continues it.
@@ -446,24 +446,28 @@ def correlated_tolerance_observations(obs: FieldObservations, rho: float, direct
     curve the deviation drifts and persists, at a corner it jumps; a tolerance that is a smooth process charges the
     jump and not the drift. Within a run of state k the deviation eta_t = u_t - B_k z_t is AR(1),
 
-        eta_t = rho eta_(t-1) + xi_t,  xi_t ~ N(0, Psi_k)  (plus the propagated velocity noise c_t),
-        eta at a run's first sample ~ N(0, Psi_k / (1 - rho^2) + c_t I)  (stationary: a fresh deviation per run),
+        eta_t = rho eta_(t-1) + xi_t,  xi_t ~ N(0, Psi_k)  (plus white noise of variance c'_t = c_t + tau^2:
+                                                        the propagated velocity noise c_t and a floor tau^2),
+        eta at a run's first sample ~ N(0, Psi_k / (1 - rho^2) + c'_t I)  (stationary: a fresh deviation per run),
 
-    with E[Psi_k] = (1 - rho^2) sigma^2 I, sigma = ``scale`` the stationary tolerance (:func:`correlated_tolerance_prior`).
-    So (Prais-Winsten) the first sample of a run is the white emission with weight w^1_t = (1 - rho^2) sigma^2 /
-    (sigma^2 + c_t), and a later one is the regression of the difference u_t - rho u_(t-1) on z_t - rho z_(t-1) with
-    covariance Psi_k / w'_t, w'_t = s_i^2 / (s_i^2 + c_t + rho^2 c_(t-1)), s_i^2 = (1 - rho^2) sigma^2 (c_t =
-    sigma_u^2 (1 / w_t - 1) recovered from ``obs``, sigma_u = ``direction_noise``; :func:`field_observations`).
-    Both are conjugate in (B_k, Psi_k) (weighted MNIW statistics), the product over t is a proper density of u (each
-    factor is a density of u_t given u_(t-1)), and its log Jacobian is d / 2 sum_t log(weight_t). Approximation: the
-    velocity noise of consecutive differences (e_t - rho e_(t-1)) is treated as independent. rho = 0 and sigma =
-    sigma_u give the white emission of ``obs`` exactly.
+    with E[Psi_k] = (1 - rho^2) sigma^2 I, sigma = ``scale`` the stationary tolerance (:func:`correlated_tolerance_prior`)
+    and tau = ``floor``. So (Prais-Winsten) the first sample of a run is the white emission with weight w^1_t =
+    (1 - rho^2) sigma^2 / (sigma^2 + c'_t), and a later one is the regression of the difference u_t - rho u_(t-1) on
+    z_t - rho z_(t-1) with covariance Psi_k / w'_t, w'_t = s_i^2 / (s_i^2 + c'_t + rho^2 c'_(t-1)), s_i^2 =
+    (1 - rho^2) sigma^2 (c_t = sigma_u^2 (1 / w_t - 1) recovered from ``obs``, sigma_u = ``direction_noise``;
+    :func:`field_observations`). Both are conjugate in (B_k, Psi_k) (weighted MNIW statistics), the product over t is
+    a proper density of u (each factor is a density of u_t given u_(t-1)), and its log Jacobian is d / 2 sum_t
+    log(weight_t). The white part of consecutive differences (e_t - rho e_(t-1)) is taken as independent from one
+    difference to the next (its lag-one covariance -rho c' is left out): the model is an AR(1) deviation whose
+    innovations carry the white noise of both samples, a proper density of its own, not the exact "AR(1) plus white
+    noise" one. rho = 0, sigma = sigma_u and tau = 0 give the white emission of ``obs`` exactly.
 
     Args:
         obs: (N, T, .) observations of :func:`field_observations` made with ``direction_noise``.
         rho: the correlation of consecutive deviations, in [0, 1).
         direction_noise: sigma_u of ``obs``.
         scale: sigma, the stationary tolerance (> 0); None: ``direction_noise``.
+        floor: tau >= 0, the white floor.
 
     Returns:
         (z, u, w) of a run's first sample and (z, u, w) of a continuing sample, each (N, T, p), (N, T, d), (N, T);
@@ -474,16 +478,17 @@ def correlated_tolerance_observations(obs: FieldObservations, rho: float, direct
     scale = direction_noise if scale is None else float(scale)
     if not scale > 0:
         raise InvalidArgumentError(f"scale must be > 0, got {scale!r}")
+    if not floor >= 0:
+        raise InvalidArgumentError(f"floor must be >= 0, got {floor!r}")
     r2 = 1.0 - rho**2
-    if scale == direction_noise:
+    c = direction_noise**2 * (1.0 / obs.w.clamp_min(1e-8) - 1.0) + floor**2  # (N, T) white noise c'_t
+    if scale == direction_noise and floor == 0.0:
         w_1 = obs.w * r2
     else:
-        c = direction_noise**2 * (1.0 / obs.w.clamp_min(1e-8) - 1.0)  # (N, T) propagated velocity noise
         w_1 = torch.where(obs.w > 0, r2 * scale**2 / (scale**2 + c), torch.zeros_like(obs.w))
     start = (obs.z, obs.u, w_1)
     if rho == 0.0:
         return start, start
-    c = direction_noise**2 * (1.0 / obs.w.clamp_min(1e-8) - 1.0)
 
     def previous(a: Tensor) -> Tensor:
         return torch.cat([a[:, :1], a[:, :-1]], 1)

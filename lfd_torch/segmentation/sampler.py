@@ -351,10 +351,12 @@ HYPERPARAMETER_RANGES: dict[str, tuple[type, float, float, bool, bool]] = {
 }
 
 
-#: The tolerances (rho, sigma) among which ``tolerance_correlation=None`` chooses (module docstring, "Correlated
-#: tolerance"): the correlation of consecutive deviations and their stationary scale (rad).
-TOLERANCES = tuple((rho, sigma) for rho in (0.0, 0.5, 0.8, 0.9, 0.95, 0.97, 0.99)
-                   for sigma in (0.02, 0.05, 0.1, 0.2, 0.4))
+#: The tolerances (rho, sigma, tau) among which ``tolerance_correlation=None`` chooses (module docstring,
+#: "Correlated tolerance"): the correlation of consecutive deviations, their stationary scale and the white floor
+#: (rad); rho = 0 rows are white tolerances sigma alone.
+TOLERANCES = tuple((0.0, sigma, 0.0) for sigma in (0.02, 0.05, 0.1, 0.2, 0.4)) + tuple(
+    (rho, sigma, tau) for rho in (0.8, 0.9, 0.95, 0.97, 0.99) for sigma in (0.05, 0.1, 0.2, 0.4)
+    for tau in (0.01, 0.02, 0.05))
 
 #: How the returned sample is chosen among the chains' sweeps after burn-in (module docstring, "Which sample").
 SELECTIONS = ("joint", "collapsed", "modal", "map")
@@ -603,38 +605,48 @@ class _Run:
         self._initialise()
 
     # ------------------------------------------------------------------ helpers
-    def _set_tolerance(self, rho: float, sigma: float | None = None) -> None:
-        """Use the tolerance (rho, sigma) in the collapsed score and the map search (module docstring, "Correlated
-        tolerance"): its prior and the first-sample / continuing views of the observations. The white tolerance of
-        the sampler (rho = 0, sigma = ``direction_noise``, ``tolerance_correlation=0``) keeps its Student-t
-        emission; every other one is Gaussian."""
+    def _set_tolerance(self, rho: float, sigma: float | None = None, tau: float = 0.0) -> None:
+        """Use the tolerance (rho, sigma, tau) in the collapsed score and the map search (module docstring,
+        "Correlated tolerance"): its prior and the first-sample / continuing views of the observations. The white
+        tolerance of the sampler (``tolerance_correlation=0``: rho = 0, sigma = ``direction_noise``, tau = 0) keeps
+        its Student-t emission; every other one is Gaussian."""
         sigma = self.cfg.direction_noise if sigma is None else float(sigma)
-        self.rho, self.sigma = float(rho), sigma
-        self.score_dof = self.cfg.robust_dof if self.cfg.tolerance_correlation == 0.0 else None
+        self.rho, self.sigma, self.tau_white = float(rho), sigma, float(tau)
+        self.score_dof = self.cfg.robust_dof
         self.score_prior = correlated_tolerance_prior(self.prior, self.rho, sigma / self.cfg.direction_noise)
-        start, cont = correlated_tolerance_observations(self.obs, self.rho, self.cfg.direction_noise, sigma)
+        start, cont = correlated_tolerance_observations(self.obs, self.rho, self.cfg.direction_noise, sigma, tau)
         n = self.N * self.T
         self.ar_start = tuple(a.reshape(1, n, *a.shape[2:]) for a in start)
         self.ar_cont = tuple(a.reshape(1, n, *a.shape[2:]) for a in cont)
 
-    def _score_view(self, s: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """What the collapsed score's field evidence sees of labellings s (B, N, T): z (1 or B, N T, p), u (1 or B,
-        N T, d), weights w (B, N T) and the per-sample log Jacobian d / 2 log w (B, N T), 0 on padding. With a
-        tolerance correlation the first sample of every run is seen as such (:func:`correlated_tolerance_observations`)."""
+    def _score_view(self, s: Tensor) -> tuple[Tensor | None, Tensor, Tensor]:
+        """What the collapsed score's field evidence sees of labellings s (B, N, T): which samples (B, N T) start a
+        run (None for a white tolerance, where it does not matter), their weights w (B, N T) and the per-sample log
+        Jacobian d / 2 log w (B, N T), 0 on padding (:func:`correlated_tolerance_observations`; the regressors and
+        directions of both views are shared by all labellings: :meth:`_stats`)."""
         B, n = s.shape[0], self.N * self.T
         valid = self.valid.reshape(1, n)
         if self.rho == 0.0:
-            z, u, w = self.ar_start
-            w = w.expand(B, n)
+            first, w = None, self.ar_start[2].expand(B, n)
         else:
             first = torch.ones_like(s, dtype=torch.bool)
             first[..., 1:] = s[..., 1:] != s[..., :-1]
             first = first.reshape(B, n)
-            z = torch.where(first.unsqueeze(-1), self.ar_start[0], self.ar_cont[0])
-            u = torch.where(first.unsqueeze(-1), self.ar_start[1], self.ar_cont[1])
             w = torch.where(first, self.ar_start[2], self.ar_cont[2])
         jac = 0.5 * self.d * torch.log(w.clamp_min(1e-300)) * valid
-        return z, u, w, jac
+        return first, w, jac
+
+    def _stats(self, first: Tensor | None, w: Tensor, onehot: Tensor) -> tuple[Tensor, ...]:
+        """Field statistics (:func:`field_statistics`) of labellings onehot (B, n, K) with weights w (B, n), each
+        sample in its first-sample or continuing view as ``first`` (B, n) says (None: the white view): two calls on
+        the shared views, the weights split between them (the statistics are linear in the weights)."""
+        z, u = self.ar_start[0], self.ar_start[1]
+        if first is None:
+            return field_statistics(z, u, w, onehot)
+        f = first.to(self.dtype)
+        counts, szz, suz, suu = field_statistics(z, u, w * f, onehot)
+        _, szz2, suz2, suu2 = field_statistics(self.ar_cont[0], self.ar_cont[1], w * (1.0 - f), onehot)
+        return counts, szz + szz2, suz + suz2, suu + suu2
 
     def _rand(self, *shape: int) -> Tensor:
         return torch.rand(*shape, generator=self.gen, dtype=self.dtype, device=self.device)
@@ -1110,17 +1122,22 @@ class _Run:
         """(C,) collapsed score of every chain's current (s, F): :meth:`_collapsed_score`."""
         return self._collapsed_score(self.s, self.F, self.phase, self.alpha, self.kappa, self.mass)
 
-    def _profile_scales(self, z: Tensor, u: Tensor, w: Tensor, onehot: Tensor) -> Tensor:
+    def _profile_scales(self, first: Tensor | None, w: Tensor, onehot: Tensor) -> Tensor:
         """(B, n) Student-t scales lambda_t at their conditional mode given the posterior-mean field of the labelling
-        ``onehot`` (B, n, K): the mode of Gamma((nu + d) / 2, (nu + q_t) / 2), q_t the squared Mahalanobis residual."""
+        ``onehot`` (B, n, K) (samples seen as :meth:`_score_view` says, weights w): the mode of Gamma((nu + d) / 2,
+        (nu + q_t) / 2), q_t the squared Mahalanobis residual."""
         nu, d = self.score_dof, self.d
-        mean, psi = field_mixture_posterior_mean(self.score_prior, *field_statistics(z, u, w, onehot),
+        mean, psi = field_mixture_posterior_mean(self.score_prior, *self._stats(first, w, onehot),
                                                  self.cfg.straight_weight)
         # each sample's residual under its own state only (padding rows of onehot are 0: q = 0 there)
         B, n, K = onehot.shape
         own_field = (onehot @ mean.flatten(-2)).unflatten(-1, mean.shape[-2:])  # (B, n, d, p)
         own_prec = (onehot @ torch.cholesky_inverse(torch.linalg.cholesky(psi)).flatten(-2)).unflatten(-1, (d, d))
+        z, u = self.ar_start[0], self.ar_start[1]
         r = u - (own_field @ z.unsqueeze(-1)).squeeze(-1)  # (B, n, d)
+        if first is not None:
+            r_cont = self.ar_cont[1] - (own_field @ self.ar_cont[0].unsqueeze(-1)).squeeze(-1)
+            r = torch.where(first.unsqueeze(-1), r, r_cont)
         q = w * (r.unsqueeze(-2) @ own_prec @ r.unsqueeze(-1)).reshape(B, n)
         return max(nu + d - 2.0, 1e-3) / (nu + q)
 
@@ -1130,17 +1147,17 @@ class _Run:
         samples, its field evidence and its tempered position evidence. Each depends on the samples of its own state
         alone (with a tolerance correlation, also on which of them start a run)."""
         B, n, K = onehot.shape
-        z, u, w, jac = self._score_view(s)
+        first, w, jac = self._score_view(s)
         w = w.expand(B, n)
         lp = (onehot * jac.unsqueeze(-1)).sum(-2)
         nu = self.score_dof
         if nu is not None:
-            lam = self._profile_scales(z, u, w, onehot)
+            lam = self._profile_scales(first, w, onehot)
             half = 0.5 * nu
             log_gamma = half * math.log(half) - math.lgamma(half) + (half - 1.0) * torch.log(lam) - half * lam
             lp = lp + (onehot * (log_gamma + 0.5 * self.d * torch.log(lam)).unsqueeze(-1)).sum(-2)
             w = w * lam
-        lp = lp + field_mixture_evidence(self.score_prior, *field_statistics(z, u, w, onehot),
+        lp = lp + field_mixture_evidence(self.score_prior, *self._stats(first, w, onehot),
                                          self.cfg.straight_weight)[0]
         if self.tau > 0:
             lp = lp + niw_log_marginal_likelihood(self.pos_prior, *self._position_statistics(onehot))
@@ -1173,18 +1190,18 @@ class _Run:
         o = self.obs
         valid = self.valid.to(self.dtype)
         onehot = (torch.nn.functional.one_hot(s, K).to(self.dtype) * valid.unsqueeze(-1)).reshape(B, N * T, K)
-        z, u, w, jac = self._score_view(s)
+        first, w, jac = self._score_view(s)
         lp = jac.sum(-1)
         parts = {}
         nu = self.score_dof
         if nu is not None:
-            lam = self._profile_scales(z, u, w, onehot)
+            lam = self._profile_scales(first, w, onehot)
             half = 0.5 * nu
             log_gamma = half * math.log(half) - math.lgamma(half) + (half - 1.0) * torch.log(lam) - half * lam
             flat_valid = valid.reshape(1, N * T)
             lp = lp + ((log_gamma + 0.5 * d * torch.log(lam)) * flat_valid).sum(-1)
             w = w * lam
-        lp = lp + field_mixture_evidence(self.score_prior, *field_statistics(z, u, w, onehot),
+        lp = lp + field_mixture_evidence(self.score_prior, *self._stats(first, w, onehot),
                                          self.cfg.straight_weight)[0].sum(-1)
         if self.tau > 0:  # the tempered NIW evidence of each state's positions
             lp = lp + niw_log_marginal_likelihood(self.pos_prior, *self._position_statistics(onehot)).sum(-1)
@@ -1244,20 +1261,22 @@ class _Run:
             c_best = snap["chain"]
         elif cfg.selection == "map":
             starts = [b for b in best if b is not None]
+            if cfg.tolerance_correlation is None:  # the tolerance the best chain's sample scores best under
+                self._best_tolerance(max(starts, key=lambda b: b["collapsed"]))
             polished = [self._climb_to_mode(b, shifts=False) for b in starts]
             c_best = max(range(len(polished)), key=lambda c: polished[c]["collapsed"])
+            snap = self._climb_to_mode(polished[c_best], shifts=True)  # the best mode, its boundaries moved too
             if cfg.tolerance_correlation is None:
-                snap = self._learn_tolerance(polished[c_best])
-            else:
-                snap = self._climb_to_mode(polished[c_best], shifts=True)  # the best mode, its boundaries moved too
-            if self.rho != 0.0:  # the fields reported are the white tolerance's posterior means of the labelling
-                tol = self.rho, self.sigma
+                snap = self._learn_tolerance(snap)
+            if (self.rho, self.sigma, self.tau_white) != (0.0, cfg.direction_noise, 0.0):
+                # the fields reported are the default white tolerance's posterior means of the labelling
+                tol = self.rho, self.sigma, self.tau_white
                 self._set_tolerance(0.0)
                 field_w, noise_w = self._posterior_mean_fields(snap["states"], snap["features"].shape[-1])
                 self._set_tolerance(*tol)
                 snap = {**snap, "field": field_w, "noise": noise_w}
             snap = {**snap, "hyper": {**snap["hyper"], "tolerance_correlation": self.rho,
-                                      "tolerance_scale": self.sigma}}
+                                      "tolerance_scale": self.sigma, "tolerance_floor": self.tau_white}}
         else:
             c_best = int(torch.argmax(best_lp))
             snap = best[c_best]
@@ -1280,31 +1299,33 @@ class _Run:
             acceptance=acceptance,
         )
 
-    def _learn_tolerance(self, snap: dict) -> dict:
-        """``tolerance_correlation=None``: coordinate ascent of the collapsed score over (s, F) and the tolerance
-        (rho, sigma) (module docstring, "Correlated tolerance"): the labelling of ``snap`` scored under every
-        tolerance of :data:`TOLERANCES`; under a better one the map search goes on from it; until it stays."""
+    def _best_tolerance(self, snap: dict) -> float:
+        """Set the tolerance of :data:`TOLERANCES` under which the labelling of ``snap`` has the highest collapsed
+        score (type-II maximum likelihood of (rho, sigma, tau) given (s, F), a uniform prior on the grid); return
+        that score."""
         hyper = [torch.tensor([snap["hyper"][k]], dtype=self.dtype, device=self.device)
                  for k in ("transition_concentration", "stickiness", "feature_mass")]
-        current = (self.rho, self.sigma)
-        shifted = False
-        for _ in range(len(TOLERANCES) + 1):
-            s, F = snap["states"][None], snap["features"][None]
-            phase = duration_phases(s, self.D)
-            scores = []
-            for tol in TOLERANCES:
-                self._set_tolerance(*tol)
-                scores.append(float(self._collapsed_score(s, F, phase, *hyper)[0]))
-            best = max(range(len(scores)), key=scores.__getitem__)
-            if scores[best] <= snap["collapsed"] + 1e-9 * abs(snap["collapsed"]):
+        s, F = snap["states"][None], snap["features"][None]
+        phase = duration_phases(s, self.D)
+        scores = []
+        for tol in TOLERANCES:
+            self._set_tolerance(*tol)
+            scores.append(float(self._collapsed_score(s, F, phase, *hyper)[0]))
+        best = max(range(len(scores)), key=scores.__getitem__)
+        self._set_tolerance(*TOLERANCES[best])
+        return scores[best]
+
+    def _learn_tolerance(self, snap: dict) -> dict:
+        """``tolerance_correlation=None``: coordinate ascent of the collapsed score over (s, F) and the tolerance
+        (rho, sigma, tau) (module docstring, "Correlated tolerance") from a mode of the map search under the present
+        tolerance: the labelling of ``snap`` scored under every tolerance of :data:`TOLERANCES`; under a better one
+        the map search goes on from it; until the tolerance stays."""
+        for _ in range(len(TOLERANCES)):
+            current = (self.rho, self.sigma, self.tau_white)
+            if self._best_tolerance(snap) <= snap["collapsed"] + 1e-9 * abs(snap["collapsed"]):
                 self._set_tolerance(*current)
-                if shifted:
-                    break  # the current tolerance is (one of) the best: a mode in (s, F, rho, sigma)
-                snap, shifted = self._climb_to_mode(snap, shifts=True), True  # its boundaries moved too
-            else:  # a better tolerance: the moves without shifts first (they are cheaper)
-                current = TOLERANCES[best]
-                self._set_tolerance(*current)
-                snap, shifted = self._climb_to_mode(snap, shifts=False), False
+                break  # the current tolerance is (one of) the best: a mode in (s, F, rho, sigma, tau)
+            snap = self._climb_to_mode(self._climb_to_mode(snap, shifts=False), shifts=True)
         return snap
 
     def _climb_to_mode(self, snap: dict, shifts: bool = True) -> dict:
@@ -1646,10 +1667,10 @@ class _Run:
         N, T = self.N, self.T
         valid = self.valid.to(self.dtype).unsqueeze(-1)
         onehot = (torch.nn.functional.one_hot(s, K).to(self.dtype) * valid).reshape(B, N * T, K)
-        z, u, w, _ = self._score_view(s)
+        first, w, _ = self._score_view(s)
         if self.score_dof is not None:
-            w = w * self._profile_scales(z, u, w, onehot)
-        field, noise = field_mixture_posterior_mean(self.score_prior, *field_statistics(z, u, w, onehot),
+            w = w * self._profile_scales(first, w, onehot)
+        field, noise = field_mixture_posterior_mean(self.score_prior, *self._stats(first, w, onehot),
                                                     self.cfg.straight_weight)  # (B, K, d, p), (B, K, d, d)
         le, le_first = self._run_emissions(field[:, None], noise[:, None])  # (B, N, T, K)
         if self.tau > 0:
@@ -1693,10 +1714,10 @@ class _Run:
         N, T = self.N, self.T
         onehot = (torch.nn.functional.one_hot(s, K).to(self.dtype) * self.valid.to(self.dtype).unsqueeze(-1))
         onehot = onehot.reshape(1, N * T, K)
-        z, u, w, _ = self._score_view(s[None])
+        first, w, _ = self._score_view(s[None])
         if self.score_dof is not None:
-            w = w * self._profile_scales(z, u, w, onehot)
-        mean, psi = field_mixture_posterior_mean(self.score_prior, *field_statistics(z, u, w, onehot),
+            w = w * self._profile_scales(first, w, onehot)
+        mean, psi = field_mixture_posterior_mean(self.score_prior, *self._stats(first, w, onehot),
                                                  self.cfg.straight_weight)
         return mean[0], psi[0]
 
