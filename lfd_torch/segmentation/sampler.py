@@ -622,7 +622,7 @@ class _Run:
         its Student-t emission; every other one is Gaussian."""
         sigma = self.cfg.direction_noise if sigma is None else float(sigma)
         self.rho, self.sigma, self.tau_white = float(rho), sigma, float(tau)
-        self.score_dof = self.cfg.robust_dof if self.rho == 0.0 else None
+        self.score_dof = self.cfg.robust_dof
         self.score_prior = correlated_tolerance_prior(self.prior, self.rho, sigma / self.cfg.direction_noise)
         start, cont = correlated_tolerance_observations(self.obs, self.rho, self.cfg.direction_noise, sigma, tau)
         n = self.N * self.T
