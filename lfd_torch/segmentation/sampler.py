@@ -123,7 +123,9 @@ emission (so it needs a minimum duration D >= 2). The Student t (``robust_dof``)
 field explains (the chord across a corner, :mod:`.field`), which a tight tolerance makes costly: with a Gaussian
 emission and no floor (commit 6b52d82, the same benchmark; its table is not kept) every switch was found on 86.8 %,
 and four demonstrations were cut into more steps than the truth (curved_const_2d 5 of 10 cases, found / true steps
-1.22; scoop_dwell_3d 6 of 10). rho = 0, sigma =
+1.22; scoop_dwell_3d 6 of 10); with the t for the white settings only and Gaussian AR deviations (commit 020fbcb,
+reverted) 86.1 %, single demonstrations losing steps (straight, curved and out-and-back legs at constant speed, 11
+cases lost against the default, 10 gained). rho = 0, sigma =
 ``direction_noise`` and tau = 0 is the white emission, the default (``tolerance_correlation=0``), and its scores
 are unchanged. The tolerance acts through the collapsed score, i.e. the map search and ``selection="collapsed"``;
 the chains sample the white model and only seed the search; the fields returned with the result are the default
