@@ -619,12 +619,10 @@ class _Run:
     # ------------------------------------------------------------------ helpers
     def _set_tolerance(self, rho: float, sigma: float | None = None, tau: float = 0.0) -> None:
         """Use the tolerance (rho, sigma, tau) in the collapsed score and the map search (module docstring,
-        "Correlated tolerance"): its prior and the first-sample / continuing views of the observations. The white
-        tolerance of the sampler (``tolerance_correlation=0``: rho = 0, sigma = ``direction_noise``, tau = 0) keeps
-        its Student-t emission; every other one is Gaussian."""
+        "Correlated tolerance"): its prior and the first-sample / continuing views of the observations. (0, None,
+        0) is the white tolerance of the sampler (``tolerance_correlation=0``)."""
         sigma = self.cfg.direction_noise if sigma is None else float(sigma)
         self.rho, self.sigma, self.tau_white = float(rho), sigma, float(tau)
-        self.score_dof = self.cfg.robust_dof
         self.score_prior = correlated_tolerance_prior(self.prior, self.rho, sigma / self.cfg.direction_noise)
         start, cont = correlated_tolerance_observations(self.obs, self.rho, self.cfg.direction_noise, sigma, tau)
         n = self.N * self.T
@@ -718,9 +716,6 @@ class _Run:
         le = log_emission.masked_fill(~features.unsqueeze(-2), _NEG_INF).repeat_interleave(D, -1)
         if first_emission is not None:
             first_le = first_emission.masked_fill(~features.unsqueeze(-2), _NEG_INF).repeat_interleave(D, -1)
-            if D == 1:  # no phases: a sample starts a run when the state differs from the previous one, which the
-                # explicit-duration chain cannot see; the correlated tolerance needs D >= 2 (checked by the caller)
-                raise InvalidArgumentError("tolerance_correlation > 0 needs min_duration >= 2")
             le = torch.where((torch.arange(le.shape[-1], device=self.device) % D) == 0, first_le, le)
         if dwell_ll is not None:
             first = (torch.arange(le.shape[-1], device=self.device) % D) == 0
@@ -1138,7 +1133,7 @@ class _Run:
         """(B, n) Student-t scales lambda_t at their conditional mode given the posterior-mean field of the labelling
         ``onehot`` (B, n, K) (samples seen as :meth:`_score_view` says, weights w): the mode of Gamma((nu + d) / 2,
         (nu + q_t) / 2), q_t the squared Mahalanobis residual."""
-        nu, d = self.score_dof, self.d
+        nu, d = self.cfg.robust_dof, self.d
         mean, psi = field_mixture_posterior_mean(self.score_prior, *self._stats(first, w, onehot),
                                                  self.cfg.straight_weight)
         # each sample's residual under its own state only (padding rows of onehot are 0: q = 0 there)
@@ -1162,7 +1157,7 @@ class _Run:
         first, w, jac = self._score_view(s)
         w = w.expand(B, n)
         lp = (onehot * jac.unsqueeze(-1)).sum(-2)
-        nu = self.score_dof
+        nu = self.cfg.robust_dof
         if nu is not None:
             lam = self._profile_scales(first, w, onehot)
             half = 0.5 * nu
@@ -1199,13 +1194,12 @@ class _Run:
         """
         B, N, K = F.shape
         T, d = self.T, self.d
-        o = self.obs
         valid = self.valid.to(self.dtype)
         onehot = (torch.nn.functional.one_hot(s, K).to(self.dtype) * valid.unsqueeze(-1)).reshape(B, N * T, K)
         first, w, jac = self._score_view(s)
         lp = jac.sum(-1)
         parts = {}
-        nu = self.score_dof
+        nu = self.cfg.robust_dof
         if nu is not None:
             lam = self._profile_scales(first, w, onehot)
             half = 0.5 * nu
@@ -1680,7 +1674,7 @@ class _Run:
         valid = self.valid.to(self.dtype).unsqueeze(-1)
         onehot = (torch.nn.functional.one_hot(s, K).to(self.dtype) * valid).reshape(B, N * T, K)
         first, w, _ = self._score_view(s)
-        if self.score_dof is not None:
+        if self.cfg.robust_dof is not None:
             w = w * self._profile_scales(first, w, onehot)
         field, noise = field_mixture_posterior_mean(self.score_prior, *self._stats(first, w, onehot),
                                                     self.cfg.straight_weight)  # (B, K, d, p), (B, K, d, d)
@@ -1727,7 +1721,7 @@ class _Run:
         onehot = (torch.nn.functional.one_hot(s, K).to(self.dtype) * self.valid.to(self.dtype).unsqueeze(-1))
         onehot = onehot.reshape(1, N * T, K)
         first, w, _ = self._score_view(s[None])
-        if self.score_dof is not None:
+        if self.cfg.robust_dof is not None:
             w = w * self._profile_scales(first, w, onehot)
         mean, psi = field_mixture_posterior_mean(self.score_prior, *self._stats(first, w, onehot),
                                                  self.cfg.straight_weight)
@@ -1738,11 +1732,11 @@ class _Run:
         continuing sample of a run, and (with a tolerance correlation; else None) as a run's first sample."""
         shape = (1, self.N, self.T)
         z, u, w = (a.reshape(*shape, *a.shape[2:]) for a in self.ar_cont)
-        le = field_log_likelihood(z, u, w, field, noise, self.score_dof)
+        le = field_log_likelihood(z, u, w, field, noise, self.cfg.robust_dof)
         if self.rho == 0.0:
             return le, None
         z, u, w = (a.reshape(*shape, *a.shape[2:]) for a in self.ar_start)
-        return le, field_log_likelihood(z, u, w, field, noise, self.score_dof)
+        return le, field_log_likelihood(z, u, w, field, noise, self.cfg.robust_dof)
 
     def _posterior_mean_dwell(self, s: Tensor) -> Tensor | None:
         """(B, N, T, 2) dwell terms under the posterior means of (mu, delta) and sigma^2 given the labellings s
