@@ -1099,6 +1099,46 @@ def test_map_search_shift_move_removes_a_run_its_fields_held_in_place(monkeypatc
     assert gap > 1.0, gap
 
 
+def test_learned_tolerance_finds_the_mild_corner_the_white_tolerance_merges(monkeypatch):
+    """Property (issue 7, "Correlated tolerance" of the sampler docstring): on the benchmark case where the white
+    default merges a 37-degree constant-speed corner (straight_const_3d, one demonstration, data case 1: 3 steps of
+    4), learning the tolerance with the labelling (``tolerance_correlation=None``) returns the 4 steps, every switch
+    within 3 % of the length; the labelling is a mode in the tolerance too: no setting of the grid scores it higher,
+    and under the chosen setting it scores above the white default's labelling."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "experiments"))
+    from bench_segmentation import data_seed
+
+    from lfd_torch.segmentation.synthetic import FAMILIES
+
+    syn = FAMILIES["straight_const_3d"](torch.Generator().manual_seed(data_seed("straight_const_3d", 1)), 1)
+    white = segment(syn.demos, generator=torch.Generator().manual_seed(1))
+    captured = capture_runs(monkeypatch)
+    learned = segment(syn.demos, generator=torch.Generator().manual_seed(1), tolerance_correlation=None)
+    run, res = captured[-1], learned.sampler
+    true = syn.switch_times[0].tolist()
+    n = int(syn.demos.lengths[0])
+    assert len(white.switches(0)) == len(true) - 1
+    found = learned.switches(0)
+    assert len(found) == len(true) and all(abs(a - b) <= 0.03 * n for a, b in zip(found, true)), (found, true)
+    hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
+             for k in ("transition_concentration", "stickiness", "feature_mass")]
+
+    def score(r):
+        s, F = r.states[None], r.features[None]
+        return float(run._collapsed_score(s, F, sampler_module.duration_phases(s, run.D), *hyper)[0])
+
+    chosen = (res.hyperparameters["tolerance_correlation"], res.hyperparameters["tolerance_scale"],
+              res.hyperparameters["tolerance_floor"])
+    grid = []
+    for tol in sampler_module.TOLERANCES:
+        run._set_tolerance(*tol)
+        grid.append(score(res))
+    run._set_tolerance(*chosen)
+    best = score(res)
+    assert max(grid) <= best + 1e-6
+    assert best > score(white.sampler)
+
+
 def test_straight_states_cut_single_demonstrations_of_straight_legs(monkeypatch):
     """Property (issue 7, "Straight states" of the sampler docstring): a single demonstration of straight legs met
     at speed (benchmark family straight_const_2d, cases 0 and 5, where the affine-only mode merges legs: 3 and 4
