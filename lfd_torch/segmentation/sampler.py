@@ -1267,8 +1267,6 @@ class _Run:
             c_best = snap["chain"]
         elif cfg.selection == "map":
             starts = [b for b in best if b is not None]
-            if cfg.tolerance_correlation is None:  # the tolerance the best chain's sample scores best under
-                self._best_tolerance(max(starts, key=lambda b: b["collapsed"]))
             polished = [self._climb_to_mode(b, shifts=False) for b in starts]
             c_best = max(range(len(polished)), key=lambda c: polished[c]["collapsed"])
             snap = self._climb_to_mode(polished[c_best], shifts=True)  # the best mode, its boundaries moved too
