@@ -131,25 +131,25 @@ are unchanged. The tolerance acts through the collapsed score, i.e. the map sear
 the chains sample the white model and only seed the search; the fields returned with the result are the default
 white tolerance's posterior means of the labelling (the change-point refinement of :mod:`.segmentation` uses
 them). ``tolerance_correlation=None`` learns (rho, sigma, tau) with the labelling: type-II maximum likelihood over
-:data:`TOLERANCES` (the 65 white and AR settings of ``experiments/diagnose_tolerance.py``, a uniform prior), first
-for the best chain's sample (before the chains are polished), then alternated with the map search from the best
-mode until it stays, i.e. a coordinate ascent of the collapsed score in (s, F, rho, sigma, tau); the scores of one
-labelling under two tolerances are densities of the same directions, so they compare. Measured with ``segment``'s
-other defaults (``bench_segmentation.py --parts synthetic --method segment --segment-option
-tolerance_correlation=None``, table ``bench_segmentation_segment_learned_tolerance.json``): every switch on 88.2 % of
-the 280 synthetic cases (the white default 86.4 %; 1 demonstration 87.1 %, 4 demonstrations 89.3 %), exact count
-92.1 %; 12 cases gained and 7 lost against the default: the mild constant-speed corners of straight legs are found
-(straight_const_3d 9 / 10 of 10 with 1 / 4 demonstrations, was 6 / 6), but single curved demonstrations lose
-steps where an AR deviation absorbs a corner (curved_dwell_3d 7 of 10, curved_const_3d 8, one case 2 steps of 5),
-curved_const_2d with four demonstrations gets 7 of 10 (an extra step per demonstration in 2), and the
-constant-speed scoop stays at 1 / 0. On LASA (``bench_segmentation_seeds.py --segment-option
-tolerance_correlation=None``, table ``bench_segmentation_seeds_learned_tolerance.json``) the data choose AR
-deviations (a one-off check on seed 0: rho 0.97-0.99, sigma 0.05, tau 0.01 on Multi_Models_1-4) and one more step
-on most routes than the white default (4 / 3 / 1 / 1, 4 / 2, 7 / 5, 5 / 3 per demonstration); Multi_Models_2, _3 and
-_4 keep their counts per demonstration on 9-10 of 10 seeds, Multi_Models_1 only on 7 (two route groupings), and
-_3's route {4-6} aligns to 6 steps on 6 of 10. It costs time: 12.4-17.2 s per seed on Multi_Models_3 (the
-chains' polish under an AR tolerance takes more moves), against the 10 s budget. So it is an option, not the
-default.
+:data:`TOLERANCES` (the 65 white and AR settings of ``experiments/diagnose_tolerance.py``, a uniform prior),
+alternated with the map search from the white map search's mode until the tolerance stays, i.e. a coordinate ascent
+of the collapsed score in (s, F, rho, sigma, tau) (:meth:`_Run._learn_tolerance`); the scores of one labelling under
+two tolerances are densities of the same directions, so they compare. Measured with ``segment``'s other defaults
+(``bench_segmentation.py --parts synthetic --method segment --segment-option tolerance_correlation=None``, table
+``bench_segmentation_segment_learned_tolerance.json``): every switch on 87.5 % of the 280 synthetic cases (the white
+default 86.4 %; 1 demonstration 86.4 %, 4 demonstrations 88.6 %), exact count 90.4 %; 8 cases gained and 5 lost
+against the default: the mild constant-speed corners of straight legs are found (straight_const_3d 8 / 9 of 10 with
+1 / 4 demonstrations, was 6 / 6), but single curved demonstrations with pauses lose steps where an AR deviation
+absorbs a corner (curved_dwell_3d 7 of 10 with one demonstration), curved_const_2d with four gets 8 of 10, and the
+constant-speed scoop 0 / 0. On LASA (``bench_segmentation_seeds.py --segment-option tolerance_correlation=None``,
+table ``bench_segmentation_seeds_learned_tolerance.json``) the data choose AR deviations (a one-off check on seed 0:
+rho 0.97-0.99, sigma 0.05, tau 0.01 on Multi_Models_1-4) and one more step on most routes than the white default
+(4 / 3 / 1 / 1, 4 / 2, 7 / 5, 5 / 3 per demonstration); every demonstration keeps its count on 9-10 of 10 seeds,
+one route grouping per shape, but Multi_Models_3's route {4-6} aligns to one count on 6 of 10 seeds. It costs time:
+10.8-16.8 s per seed on Multi_Models_3 with the other core busy (the climbs under an AR tolerance take more moves),
+against the 10 s budget. So it is an option, not the default. Choosing the tolerance before the chains are
+polished, under it (commit a98d740, same benchmarks) found 88.2 % but split Multi_Models_1's steps differently on 3
+of 10 seeds.
 
 Position (``position_weight`` tau; NIW kernels of :mod:`lfd_torch.gmm`). An affine direction field is defined over
 the whole space, so with directions alone one state may carry two pieces far apart whose directions one field
