@@ -65,6 +65,10 @@ The prior is set on the standardised scale: M0 = 0; E[Psi] = ``direction_noise``
 priori the slope entries have a standard deviation of about 1 (a field may turn the
 direction by about a radian per radius of the data, i.e. curvature radii down to the data's own size) and the
 offset about 1 (a unit direction).
+
+The deviations u_t - B_k z_t are independent here (a white tolerance). :func:`correlated_tolerance_observations`
+gives the conjugate views of a correlated (AR(1)) tolerance, which the sampler's collapsed score uses with
+``tolerance_correlation`` (:mod:`.sampler`, "Correlated tolerance").
 """
 
 from __future__ import annotations
