@@ -52,6 +52,7 @@ import torch
 from torch import Tensor
 
 import lfd_torch.segmentation.sampler as sampler_module
+from lfd_torch.segmentation.sampler import TOLERANCES
 from lfd_torch.data import load_lasa
 from lfd_torch.segmentation import runs, segment
 from lfd_torch.segmentation.synthetic import FAMILIES
@@ -67,9 +68,9 @@ MODELS = (
     ("AR 0.97, 0.2 + 0.02", 0.97, 0.2**2 * (1 - 0.97**2), 0.02**2),
     ("AR 0.9, 0.1 + 0.02", 0.9, 0.1**2 * (1 - 0.9**2), 0.02**2),
 )
-#: Type-II grid: (rho, stationary scale of the AR deviation, white scale), rad; rho = 0 rows are white only.
-GRID = tuple((rho, a, w) for rho in (0.8, 0.9, 0.95, 0.97, 0.99) for a in (0.05, 0.1, 0.2, 0.4)
-             for w in (0.01, 0.02, 0.05)) + tuple((0.0, 0.0, w) for w in (0.02, 0.05, 0.1, 0.2, 0.4))
+#: Type-II grid: (rho, stationary scale of the AR deviation, white scale), rad; rho = 0 rows are white only. The
+#: settings of the model's learned tolerance (:data:`~lfd_torch.segmentation.sampler.TOLERANCES`), AR rows first.
+GRID = tuple(t for t in TOLERANCES if t[0] > 0) + tuple((0.0, 0.0, t[1]) for t in TOLERANCES if t[0] == 0)
 
 
 def smooth_tolerance_evidence(z: Tensor, u: Tensor, c: Tensor, labels: list[Tensor], rho: Tensor, q: Tensor,

@@ -131,7 +131,7 @@ are unchanged. The tolerance acts through the collapsed score, i.e. the map sear
 the chains sample the white model and only seed the search; the fields returned with the result are the default
 white tolerance's posterior means of the labelling (the change-point refinement of :mod:`.segmentation` uses
 them). ``tolerance_correlation=None`` learns (rho, sigma, tau) with the labelling: type-II maximum likelihood over
-:data:`TOLERANCES` (the 65 white and AR settings of ``experiments/diagnose_tolerance.py``, a uniform prior),
+:data:`TOLERANCES` (65 white and AR settings, the grid ``experiments/diagnose_tolerance.py`` scores exactly; a uniform prior),
 alternated with the map search from the white map search's mode until the tolerance stays, i.e. a coordinate ascent
 of the collapsed score in (s, F, rho, sigma, tau) (:meth:`_Run._learn_tolerance`); the scores of one labelling under
 two tolerances are densities of the same directions, so they compare. Measured with ``segment``'s other defaults
