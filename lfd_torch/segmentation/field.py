@@ -455,7 +455,8 @@ def correlated_tolerance_observations(obs: FieldObservations, rho: float, direct
         eta at a run's first sample ~ N(0, Psi_k / (1 - rho^2) + c'_t I)  (stationary: a fresh deviation per run),
 
     with E[Psi_k] = (1 - rho^2) sigma^2 I, sigma = ``scale`` the stationary tolerance
-    (:func:`correlated_tolerance_prior`) and tau = ``floor``. So (Prais-Winsten) the first sample of a run is the white emission with weight w^1_t =
+    (:func:`correlated_tolerance_prior`) and tau = ``floor``. So (Prais-Winsten) the first sample of a run is the
+    white emission with weight w^1_t =
     (1 - rho^2) sigma^2 / (sigma^2 + c'_t), and a later one is the regression of the difference u_t - rho u_(t-1) on
     z_t - rho z_(t-1) with covariance Psi_k / w'_t, w'_t = s_i^2 / (s_i^2 + c'_t + rho^2 c'_(t-1)), s_i^2 =
     (1 - rho^2) sigma^2 (c_t = sigma_u^2 (1 / w_t - 1) recovered from ``obs``, sigma_u = ``direction_noise``;

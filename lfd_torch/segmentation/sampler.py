@@ -110,7 +110,8 @@ direction leaves the field: at a corner it jumps, along a human curve it drifts.
 process along the path charges a jump and not a drift: "Correlated tolerance" below.
 
 Correlated tolerance (``tolerance_correlation`` rho;
-:func:`~lfd_torch.segmentation.field.correlated_tolerance_observations`, the derivation there). Within a run the deviation of the direction from its state's field is AR(1), eta_t = rho
+:func:`~lfd_torch.segmentation.field.correlated_tolerance_observations`, the derivation there). Within a run the
+deviation of the direction from its state's field is AR(1), eta_t = rho
 eta_(t-1) + xi_t, with a fresh stationary deviation of scale sigma at the run's first sample, plus white noise
 (the propagated velocity noise and a floor tau^2). By the Prais-Winsten transform every factor stays a conjugate
 MNIW regression: a run's first sample is the white emission with weight (1 - rho^2) sigma^2 / (sigma^2 + c'_t), a
@@ -132,7 +133,8 @@ the chains sample the white model and only seed the search; the fields returned 
 white tolerance's posterior means of the labelling (the change-point refinement of :mod:`.segmentation` uses
 them). ``tolerance_correlation=None`` learns (rho, sigma, tau) with the labelling: type-II maximum likelihood over
 :data:`TOLERANCES` (65 white and AR settings, the grid ``experiments/diagnose_tolerance.py`` scores exactly; a
-uniform prior), alternated with the map search from the white map search's mode until the tolerance stays, i.e. a coordinate ascent
+uniform prior), alternated with the map search from the white map search's mode until the tolerance stays, i.e. a
+coordinate ascent
 of the collapsed score in (s, F, rho, sigma, tau) (:meth:`_Run._learn_tolerance`); the scores of one labelling under
 two tolerances are densities of the same directions, so they compare. Measured with ``segment``'s other defaults
 (``bench_segmentation.py --parts synthetic --method segment --segment-option tolerance_correlation=None``, table
