@@ -172,7 +172,12 @@ samples): a leg of n grid points counts as n / D position observations. Temperin
 conjugate (the NIW statistics are weighted by tau; the collapsed score adds the tempered NIW evidence of each
 state's positions, the joint log probability the NIW density of (mu_k, Sigma_k)); births draw (mu*, Sigma*)
 from the tempered posterior of the same window as the field. ``position_weight=0`` is the direction-only model
-(nothing is drawn for the positions; the sampler's default).
+(nothing is drawn for the positions; the sampler's default). Known bias: tempering does not remove the split gain,
+it scales it, to about (n / D) log 2 nats for a leg of n grid points traversed at an even pace, against about 5
+nats per switch from the transitions; so the term presses for cuts on long legs whatever the directions say. It
+finds some mild constant-speed corners of single demonstrations for the fields and cuts some long arcs
+(``position_weight`` 0.1 and 0.6 against 1 / D on the synthetic benchmark, README, "What the position term does to
+the steps"); a spatial term that anchors states without rewarding cuts along a leg is open.
 Measured with ``selection="map"`` and tau = 1 / D (``experiments/bench_segmentation_seeds.py --selection map
 --segment-option position_weight=None``): every demonstration and route of LASA Multi_Models_1-4 gets its most
 common step count on 9 or 10 of 10 seeds, one route grouping per shape (without it, Multi_Models_4: 5-10 of 10,
