@@ -17,8 +17,9 @@ its tolerance known instead of inverse-Wishart). log p(u | z, labelling) is exac
 [vec(B_k), eta_t] (:func:`smooth_tolerance_evidence`, tested against the stacked Gaussian density in
 ``tests/test_diagnose_tolerance.py``). The grid, directions, regressors and c_t are those the sampler used
 (c_t = sigma_u^2 (1 / w_t - 1) at the default sigma_u, :mod:`.field`). Built into the model since, in conjugate
-(Prais-Winsten) form and with the same grid: ``segment(..., tolerance_correlation=None)``
-(:mod:`lfd_torch.segmentation.sampler`, "Correlated tolerance"); this script stays the exact reference.
+form (Kalman-factored, :func:`~lfd_torch.segmentation.field.correlated_tolerance_observations`) and with the same
+grid: ``segment(..., tolerance_correlation=None)`` (:mod:`lfd_torch.segmentation.sampler`, "Correlated
+tolerance"); this script stays the exact reference.
 
 Labellings: for ``--case FAMILY N_DEMOS SEED`` (the data of ``bench_segmentation.py``) a = the one ``segment``
 returns (default settings), b = the truth on the grid; for ``--shape`` (LASA, all 7 demonstrations) a = the

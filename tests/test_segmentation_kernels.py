@@ -277,11 +277,14 @@ def test_additive_field_likelihood_against_scipy_and_at_rest(generator, dof):
 
 
 def test_correlated_tolerance_is_the_stacked_ar1_gaussian(generator):
-    """The correlated tolerance (``correlated_tolerance_observations``) against its model written out: without
-    velocity noise (w = 1) the first sample's density times the continuing samples' densities of a run equals the
-    density of the stacked directions, N(vec(B z_t), R (x) Psi) with R_ts = rho^|t - s| / (1 - rho^2) (scipy); with
-    rho = 0 and another scale sigma the first-sample view is the additive white model with tolerance sigma; with
-    rho = 0 and sigma = sigma_u the observations are returned as they are."""
+    """The correlated tolerance (``correlated_tolerance_observations``) against its model written out: the density of
+    a run, its samples seen in the views of their ages, equals the density of the stacked directions,
+    N(vec(B z_t), (R + diag(r)) (x) Psi) with R_ts = rho^|t - s| / (1 - rho^2) the AR(1) deviation and r_t = c'_t /
+    s_i^2 the white noise in units of Psi (scipy), with and without velocity noise and a floor, for runs that start
+    anywhere and as long as the filter's memory; longer runs forget the oldest samples; a direction with no
+    information (w = 0) does not reset the deviation; rho = 0 and another scale sigma is the additive white model
+    with tolerance sigma; rho = 0 and sigma = sigma_u returns the observations as they are."""
+    from lfd_torch.errors import InvalidArgumentError
     from lfd_torch.segmentation.field import (
         FieldObservations,
         correlated_tolerance_observations,
@@ -291,47 +294,59 @@ def test_correlated_tolerance_is_the_stacked_ar1_gaussian(generator):
         field_prior,
     )
 
-    d, n, rho, su = 2, 7, 0.8, 0.2
+    d, n, rho, su, memory = 2, 7, 0.8, 0.2, 6
     z = torch.cat([torch.randn(1, n, d, generator=generator, dtype=F64), torch.ones(1, n, 1, dtype=F64)], -1)
     u = torch.randn(1, n, d, generator=generator, dtype=F64)
     b = torch.randn(1, d, d + 1, generator=generator, dtype=F64) * 0.3
     a = torch.randn(1, d, d, generator=generator, dtype=F64) * 0.1
     psi = a @ a.transpose(-1, -2) + 0.02 * torch.eye(d, dtype=F64)
-    obs = FieldObservations(z=z, u=u, w=torch.ones(1, n, dtype=F64), centre=torch.zeros(d, dtype=F64),
-                            radius=torch.tensor(1.0, dtype=F64))
-    start, cont = correlated_tolerance_observations(obs, rho, su)
-    ll_start = field_log_likelihood(*start, b, psi)[0, :, 0]
-    ll_cont = field_log_likelihood(*cont, b, psi)[0, :, 0]
-    got = ll_start[0] + ll_cont[1:].sum()
-    t = torch.arange(n, dtype=F64)
-    r = rho ** (t[:, None] - t[None, :]).abs() / (1 - rho**2)
     mean = (z[0] @ b[0].T).reshape(-1).numpy()
-    ref = stats.multivariate_normal(mean, torch.kron(r, psi[0]).numpy()).logpdf(u[0].reshape(-1).numpy())
-    assert got.item() == pytest.approx(ref, rel=1e-10)
-    # a run of one state anywhere in the sequence: its first sample is the stationary start
-    ll_mid = ll_start[3] + ll_cont[4:].sum()
-    ref_mid = stats.multivariate_normal(mean[3 * d:], torch.kron(r[3:, 3:], psi[0]).numpy()).logpdf(
-        u[0, 3:].reshape(-1).numpy())
-    assert ll_mid.item() == pytest.approx(ref_mid, rel=1e-10)
-    # rho = 0, scale sigma: the additive white model u ~ N(B z, sigma^2 I + c_t I)
+    t = torch.arange(n, dtype=F64)
+    ar = rho ** (t[:, None] - t[None, :]).abs() / (1 - rho**2)
+
+    def run_density(views, lo: int, hi: int) -> float:  # samples lo..hi-1 as one run: sample t in view t - lo
+        return sum(field_log_likelihood(*views[min(k - lo, memory)], b, psi)[0, k, 0].item() for k in range(lo, hi))
+
+    def stacked(cov: Tensor, lo: int, hi: int) -> float:
+        return stats.multivariate_normal(mean[lo * d: hi * d], torch.kron(cov[lo:hi, lo:hi], psi[0]).numpy()).logpdf(
+            u[0, lo:hi].reshape(-1).numpy())
+
+    sigma, tau = 0.15, 0.03
     w = torch.rand(1, n, generator=generator, dtype=F64) * 0.9 + 0.05
+    for w_, sc, fl in ((torch.ones(1, n, dtype=F64), su, 0.0), (w, su, 0.0), (w, sigma, tau)):
+        obs = FieldObservations(z=z, u=u, w=w_, centre=torch.zeros(d, dtype=F64), radius=torch.tensor(1.0, dtype=F64))
+        views = correlated_tolerance_observations(obs, rho, su, sc, fl, memory=memory)
+        assert len(views) == memory + 1
+        c = su**2 * (1.0 / w_[0] - 1.0) + fl**2
+        cov = ar + torch.diag(c / ((1 - rho**2) * sc**2))
+        for lo, hi in ((0, n), (3, n), (1, 4)):  # runs of up to memory + 1 samples: exact
+            assert run_density(views, lo, hi) == pytest.approx(stacked(cov, lo, hi), rel=1e-10)
+    # a longer run: beyond the memory a sample is predicted from the last `memory` samples only
+    short = correlated_tolerance_observations(obs, rho, su, sigma, tau, memory=2)
+    lead = sum(field_log_likelihood(*short[min(k, 2)], b, psi)[0, k, 0].item() for k in range(3))
+    assert lead == pytest.approx(stacked(cov, 0, 3), rel=1e-10)
+    torch.testing.assert_close(short[2][0][0, 3:], views[2][0][0, 3:])  # same view as with a longer memory
+    # no information at sample 2: the filter predicts through it, so sample 3 still depends on samples 0 and 1
+    dark = FieldObservations(z=z, u=u, w=torch.cat([w[:, :2], torch.zeros(1, 1, dtype=F64), w[:, 3:]], 1),
+                             centre=obs.centre, radius=obs.radius)
+    v3 = correlated_tolerance_observations(dark, rho, su, memory=memory)[3]
+    assert v3[2][0, 2] == 0.0  # the dark sample itself carries no weight
+    assert not torch.allclose(v3[1][0, 3], u[0, 3])  # ...but the prediction of sample 3 is not reset
+    # rho = 0, scale sigma: the additive white model u ~ N(B z, sigma^2 I + c_t I) in every view
     obs_w = FieldObservations(z=z, u=u, w=w, centre=obs.centre, radius=obs.radius)
-    sigma = 0.07
-    start, cont = correlated_tolerance_observations(obs_w, 0.0, su, sigma)
     iso = (sigma**2 * torch.eye(d, dtype=F64))[None]
-    torch.testing.assert_close(field_log_likelihood(*start, b, iso),
-                               field_log_likelihood_additive(z, u, w, b, iso, direction_noise=su))
-    # the white floor tau adds tau^2 to the white noise: rho = 0 is the additive model with tolerance sigma^2 + tau^2
-    tau = 0.03
-    start, _ = correlated_tolerance_observations(obs_w, 0.0, su, sigma, tau)
+    for view in correlated_tolerance_observations(obs_w, 0.0, su, sigma, memory=3):
+        torch.testing.assert_close(field_log_likelihood(*view, b, iso),
+                                   field_log_likelihood_additive(z, u, w, b, iso, direction_noise=su))
+    # the white floor tau adds tau^2 to the white noise
+    start = correlated_tolerance_observations(obs_w, 0.0, su, sigma, tau)[0]
     torch.testing.assert_close(field_log_likelihood(*start, b, iso),
                                field_log_likelihood_additive(z, u, w, b, iso + tau**2 * torch.eye(d, dtype=F64),
                                                              direction_noise=su))
-    start, cont = correlated_tolerance_observations(obs, rho, su, floor=tau)  # w = 1: c'_t = tau^2
-    s2 = (1 - rho**2) * su**2
-    torch.testing.assert_close(cont[2][0, 1:], torch.full((n - 1,), s2 / (s2 + (1 + rho**2) * tau**2), dtype=F64))
-    same, same_c = correlated_tolerance_observations(obs_w, 0.0, su)
-    assert all(x is y for x, y in zip(same, (z, u))) and torch.equal(same[2], w) and same_c is same
+    same = correlated_tolerance_observations(obs_w, 0.0, su)
+    assert all(v is same[0] for v in same) and same[0][0] is z and same[0][1] is u and torch.equal(same[0][2], w)
+    with pytest.raises(InvalidArgumentError, match="memory"):
+        correlated_tolerance_observations(obs_w, rho, su, memory=0)
     # the prior: E[Psi] and V0 scaled so that the prior of B (Psi (x) V0) is unchanged
     prior = field_prior(d, direction_noise=su)
     scaled = correlated_tolerance_prior(prior, rho, sigma / su)

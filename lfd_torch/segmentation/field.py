@@ -87,7 +87,8 @@ __all__ = ["FieldPrior", "FieldObservations", "field_observations", "field_prior
            "field_posterior", "field_log_marginal_likelihood", "straight_field_prior", "field_mixture_evidence",
            "field_mixture_posterior_mean", "sample_field", "field_log_density",
            "field_log_likelihood",
-           "field_log_likelihood_additive", "correlated_tolerance_observations", "correlated_tolerance_prior"]
+           "field_log_likelihood_additive", "correlated_tolerance_observations", "correlated_tolerance_prior",
+           "TOLERANCE_MEMORY"]
 
 
 
@@ -440,32 +441,40 @@ def correlated_tolerance_prior(prior: FieldPrior, rho: float, ratio: float = 1.0
     return FieldPrior(mean=prior.mean, row_covariance=prior.row_covariance / f, dof=prior.dof, scale=prior.scale * f)
 
 
+#: Memory of the correlated tolerance's filter, grid points: a sample that has been in its run longer is predicted
+#: from the last ``TOLERANCE_MEMORY`` samples of the run (:func:`correlated_tolerance_observations`).
+TOLERANCE_MEMORY = 10
+
+
 def correlated_tolerance_observations(obs: FieldObservations, rho: float, direction_noise: float,
-                                      scale: float | None = None, floor: float = 0.0
-                                      ) -> tuple[tuple[Tensor, Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]:
-    """Regressors, directions and weights of a correlated (AR(1)) direction tolerance, for a sample that starts a
-    run of its state and for one that continues it.
+                                      scale: float | None = None, floor: float = 0.0,
+                                      memory: int = TOLERANCE_MEMORY) -> tuple[tuple[Tensor, Tensor, Tensor], ...]:
+    """Regressors, directions and weights of a correlated (AR(1)) direction tolerance, one view per age of a sample
+    in its run (0: the run's first sample, ..., ``memory``: that many samples or more after it).
 
     The white emission lets a direction leave its field by independent noise: u_t = B_k z_t + e_t. Along a human
     curve the deviation drifts and persists, at a corner it jumps; a tolerance that is a smooth process charges the
-    jump and not the drift. Within a run of state k the deviation eta_t = u_t - B_k z_t is AR(1),
+    jump and not the drift. Within a run of state k
 
-        eta_t = rho eta_(t-1) + xi_t,  xi_t ~ N(0, Psi_k)  (plus white noise of variance c'_t = c_t + tau^2:
-                                                        the propagated velocity noise c_t and a floor tau^2),
-        eta at a run's first sample ~ N(0, Psi_k / (1 - rho^2) + c'_t I)  (stationary: a fresh deviation per run),
+        u_t = B_k z_t + eta_t + e_t,   eta_t = rho eta_(t-1) + xi_t,  xi_t ~ N(0, Psi_k),
+        e_t ~ N(0, r_t Psi_k),  r_t = c'_t / s_i^2,  eta at a run's first sample ~ N(0, Psi_k / (1 - rho^2)),
 
-    with E[Psi_k] = (1 - rho^2) sigma^2 I, sigma = ``scale`` the stationary tolerance
-    (:func:`correlated_tolerance_prior`) and tau = ``floor``. So (Prais-Winsten) the first sample of a run is the
-    white emission with weight w^1_t =
-    (1 - rho^2) sigma^2 / (sigma^2 + c'_t), and a later one is the regression of the difference u_t - rho u_(t-1) on
-    z_t - rho z_(t-1) with covariance Psi_k / w'_t, w'_t = s_i^2 / (s_i^2 + c'_t + rho^2 c'_(t-1)), s_i^2 =
-    (1 - rho^2) sigma^2 (c_t = sigma_u^2 (1 / w_t - 1) recovered from ``obs``, sigma_u = ``direction_noise``;
-    :func:`field_observations`). Both are conjugate in (B_k, Psi_k) (weighted MNIW statistics), the product over t is
-    a proper density of u (each factor is a density of u_t given u_(t-1)), and its log Jacobian is d / 2 sum_t
-    log(weight_t). The white part of consecutive differences (e_t - rho e_(t-1)) is taken as independent from one
-    difference to the next (its lag-one covariance -rho c' is left out): the model is an AR(1) deviation whose
-    innovations carry the white noise of both samples, a proper density of its own, not the exact "AR(1) plus white
-    noise" one. rho = 0, sigma = sigma_u and tau = 0 give the white emission of ``obs`` exactly.
+    with c'_t = c_t + tau^2 the white noise (the propagated velocity noise c_t = sigma_u^2 (1 / w_t - 1) recovered
+    from ``obs``, sigma_u = ``direction_noise``, and a floor tau = ``floor``), s_i^2 = (1 - rho^2) sigma^2 = E[Psi_k]
+    per axis (:func:`correlated_tolerance_prior`, sigma = ``scale`` the stationary tolerance): the white noise is
+    written in units of Psi_k, as the white emission's Psi_k / w_t (:mod:`.field` docstring), which keeps every
+    factor conjugate. The run's directions are then N(vec(B_k Z), Omega (x) Psi_k), Omega = R + diag(r), R the unit
+    AR(1) correlation, and the scalar Kalman filter of eta (gain K_j = P_j / (P_j + r_j)) factors that density into
+    one-step predictions: u_t - m_t(u) given the filter's prediction m_t, a linear combination of the run's earlier
+    directions, is N(B_k (z_t - m_t(z)), S_t Psi_k), S_t = P_t + r_t, the same combination applied to the regressors
+    (B_k enters linearly). So each sample is a weighted MNIW regression of u_t - m_t(u) on z_t - m_t(z) with weight
+    1 / S_t and log Jacobian d / 2 log(1 / S_t): the sampler's conjugate scores need only the view of each sample's
+    age. Beyond ``memory`` samples into a run the filter starts ``memory`` samples back (from the stationary
+    prior): a proper density still (each factor is a density of u_t given earlier directions), the exact one for
+    runs up to ``memory`` + 1 samples; the filter forgets at about its gain, a few grid points unless the white noise
+    dominates. Where a direction carries no information (w_t = 0, r_t infinite) the filter predicts through it, so a
+    pause does not reset the deviation: a corner taken at rest is still a jump. rho = 0, sigma = sigma_u and tau = 0
+    give the white emission of ``obs`` exactly (every view that of age 0).
 
     Args:
         obs: (N, T, .) observations of :func:`field_observations` made with ``direction_noise``.
@@ -473,10 +482,11 @@ def correlated_tolerance_observations(obs: FieldObservations, rho: float, direct
         direction_noise: sigma_u of ``obs``.
         scale: sigma, the stationary tolerance (> 0); None: ``direction_noise``.
         floor: tau >= 0, the white floor.
+        memory: the oldest age with a view of its own (>= 1).
 
     Returns:
-        (z, u, w) of a run's first sample and (z, u, w) of a continuing sample, each (N, T, p), (N, T, d), (N, T);
-        the continuing version of t = 0 is the first-sample one (it has no predecessor).
+        ``memory`` + 1 views (z, u, w), each (N, T, p), (N, T, d), (N, T): view a of sample t predicts it from the a
+        samples before it (fewer at the start of a sequence); w is 0 where ``obs.w`` is (padding).
     """
     if not 0.0 <= rho < 1.0:
         raise InvalidArgumentError(f"tolerance_correlation must be in [0, 1), got {rho!r}")
@@ -485,23 +495,34 @@ def correlated_tolerance_observations(obs: FieldObservations, rho: float, direct
         raise InvalidArgumentError(f"scale must be > 0, got {scale!r}")
     if not floor >= 0:
         raise InvalidArgumentError(f"floor must be >= 0, got {floor!r}")
+    if int(memory) < 1:
+        raise InvalidArgumentError(f"memory must be >= 1, got {memory!r}")
     r2 = 1.0 - rho**2
-    c = direction_noise**2 * (1.0 / obs.w.clamp_min(1e-8) - 1.0) + floor**2  # (N, T) white noise c'_t
-    if scale == direction_noise and floor == 0.0:
-        w_1 = obs.w * r2
-    else:
-        w_1 = torch.where(obs.w > 0, r2 * scale**2 / (scale**2 + c), torch.zeros_like(obs.w))
-    start = (obs.z, obs.u, w_1)
-    if rho == 0.0:
-        return start, start
-
-    def previous(a: Tensor) -> Tensor:
-        return torch.cat([a[:, :1], a[:, :-1]], 1)
-
+    seen = obs.w > 0
+    if rho == 0.0 and scale == direction_noise and floor == 0.0:
+        start = (obs.z, obs.u, obs.w)  # the white emission as it is
+        return (start,) * (int(memory) + 1)
     s2 = r2 * scale**2
-    w_c = torch.where(obs.w > 0, s2 / (s2 + c + rho**2 * previous(c)), torch.zeros_like(obs.w))
-    cont = (obs.z - rho * previous(obs.z), obs.u - rho * previous(obs.u), w_c)
-    first = torch.zeros_like(obs.w, dtype=torch.bool)
-    first[:, 0] = True
-    cont = tuple(torch.where(first.view(*first.shape, *([1] * (a.dim() - 2))), b, a) for a, b in zip(cont, start))
-    return start, cont
+    c = direction_noise**2 * (1.0 / obs.w.clamp_min(1e-8) - 1.0) + floor**2  # (N, T) white noise c'_t
+    r = torch.where(seen, c / s2, torch.full_like(c, float("inf")))
+
+    t = torch.arange(c.shape[1], device=c.device)
+
+    def back(a: Tensor, m: int) -> Tensor:  # a[t - m] at t (a[0] where t < m, where it is never used)
+        return a[:, (t - m).clamp_min(0)]
+
+    views = []
+    for age in range(int(memory) + 1):
+        m_u, m_z = torch.zeros_like(obs.u), torch.zeros_like(obs.z)  # the filter's prediction, applied to u and z
+        p = torch.full_like(c, 1.0 / r2)  # its variance: the stationary prior at the run's first sample
+        for k in range(age):  # the samples t - age .. t - 1, oldest first
+            lag = age - k
+            r_j = back(r, lag)
+            t_ok = t >= lag  # sample t - lag exists
+            gain = torch.where(t_ok & torch.isfinite(r_j), p / (p + r_j.nan_to_num(posinf=1.0)), torch.zeros_like(p))
+            m_u = rho * (m_u + gain.unsqueeze(-1) * (back(obs.u, lag) - m_u))
+            m_z = rho * (m_z + gain.unsqueeze(-1) * (back(obs.z, lag) - m_z))
+            p = rho**2 * (1.0 - gain) * p + 1.0
+        w = torch.where(seen, 1.0 / (p + r.nan_to_num(posinf=1.0)), torch.zeros_like(c))
+        views.append((obs.z - m_z, obs.u - m_u, w))
+    return tuple(views)

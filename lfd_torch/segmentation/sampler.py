@@ -113,14 +113,20 @@ Correlated tolerance (``tolerance_correlation`` rho;
 :func:`~lfd_torch.segmentation.field.correlated_tolerance_observations`, the derivation there). Within a run the
 deviation of the direction from its state's field is AR(1), eta_t = rho
 eta_(t-1) + xi_t, with a fresh stationary deviation of scale sigma at the run's first sample, plus white noise
-(the propagated velocity noise and a floor tau^2). By the Prais-Winsten transform every factor stays a conjugate
-MNIW regression: a run's first sample is the white emission with weight (1 - rho^2) sigma^2 / (sigma^2 + c'_t), a
-continuing sample the regression of u_t - rho u_(t-1) on z_t - rho z_(t-1) with the innovations' covariance Psi_k
-(prior mean (1 - rho^2) sigma^2 I). Which samples start a run depends on the labelling, so the collapsed score
-takes the first-sample view where s_t != s_(t-1) (:meth:`_Run._score_view`; the statistics of both views are
-computed on shared regressors, :meth:`_Run._stats`), the shift and reassignment scores see it through the
-candidates' labels, and the Viterbi relabelling gives phase 0 of the explicit-duration states the first-sample
-emission (so it needs a minimum duration D >= 2). The Student t (``robust_dof``) stays, for the directions no
+(the propagated velocity noise and a floor tau^2, in units of the innovations' covariance Psi_k, prior mean
+(1 - rho^2) sigma^2 I, so that every factor stays a conjugate MNIW regression). A scalar Kalman filter of the
+deviation factors a run's density into one-step predictions: a sample of age a in its run (0 at its first
+sample) is the regression of u_t minus the filter's prediction from the run's earlier directions on z_t minus the
+same combination of their regressors, with weight 1 / S_t (its predictive variance in units of Psi_k); exact for
+runs up to :data:`~lfd_torch.segmentation.field.TOLERANCE_MEMORY` + 1 grid points, beyond that the filter starts that
+many points back. Ages depend on the labelling, so the collapsed score sees every sample in the view of its age
+(:meth:`_Run._score_view`; the views are computed once per tolerance and gathered, :meth:`_Run._stats`), the shift
+and reassignment scores see it through the candidates' labels, and the Viterbi relabelling (a proposal, confirmed by
+the score) gives phase 0 of the explicit-duration states the age-0 view and later phases the oldest one (so it needs
+a minimum duration D >= 2). The filter predicts through a direction that carries no information (a pause: w_t ~ 0),
+so a corner taken at rest is still a jump of the deviation; the Prais-Winsten form built first, which conditioned on
+the last noisy direction alone (commit 58b575a), let a run's deviation restart there and absorbed such corners
+(curved_dwell_3d with one demonstration 7 of 10, below). The Student t (``robust_dof``) stays, for the directions no
 field explains (the chord across a corner, :mod:`.field`), which a tight tolerance makes costly: with a Gaussian
 emission and no floor (commit 6b52d82, the same benchmark; its table is not kept) every switch was found on 86.8 %,
 and four demonstrations were cut into more steps than the truth (curved_const_2d 5 of 10 cases, found / true steps
@@ -138,20 +144,22 @@ coordinate ascent
 of the collapsed score in (s, F, rho, sigma, tau) (:meth:`_Run._learn_tolerance`); the scores of one labelling under
 two tolerances are densities of the same directions, so they compare. Measured with ``segment``'s other defaults
 (``bench_segmentation.py --parts synthetic --method segment --segment-option tolerance_correlation=None``, table
-``bench_segmentation_segment_learned_tolerance.json``): every switch on 87.5 % of the 280 synthetic cases (the white
-default 86.4 %; 1 demonstration 86.4 %, 4 demonstrations 88.6 %), exact count 90.4 %; 8 cases gained and 5 lost
-against the default: the mild constant-speed corners of straight legs are found (straight_const_3d 8 / 9 of 10 with
-1 / 4 demonstrations, was 6 / 6), but single curved demonstrations with pauses lose steps where an AR deviation
-absorbs a corner (curved_dwell_3d 7 of 10 with one demonstration), curved_const_2d with four gets 8 of 10, and the
-constant-speed scoop 0 / 0. On LASA (``bench_segmentation_seeds.py --segment-option tolerance_correlation=None``,
-table ``bench_segmentation_seeds_learned_tolerance.json``) the data choose AR deviations (a one-off check on seed 0:
-rho 0.97-0.99, sigma 0.05, tau 0.01 on Multi_Models_1-4) and one more step on most routes than the white default
-(4 / 3 / 1 / 1, 4 / 2, 7 / 5, 5 / 3 per demonstration); every demonstration keeps its count on 9-10 of 10 seeds,
-one route grouping per shape, but Multi_Models_3's route {4-6} aligns to one count on 6 of 10 seeds. It costs time:
-10.8-16.8 s per seed on Multi_Models_3 with the other core busy (the climbs under an AR tolerance take more moves),
-against the 10 s budget. So it is an option, not the default. Choosing the tolerance before the chains are
-polished, under it (commit a98d740, same benchmarks) found 88.2 % but split Multi_Models_1's steps differently on 3
-of 10 seeds.
+``bench_segmentation_segment_learned_tolerance_kalman.json``): every switch on 88.2 % of the 280 synthetic cases (the
+white default 86.4 %; 1 demonstration 87.9 %, 4 demonstrations 88.6 %), exact count 90.7 %; 7 cases gained and 2 lost
+against the default: the mild constant-speed corners of straight legs with four demonstrations are found
+(straight_const_3d 7 / 9 of 10 with 1 / 4 demonstrations, was 6 / 6), single curved demonstrations with pauses keep
+their steps (curved_dwell_3d 10 of 10), curved_const_2d gets 8 / 8 and the constant-speed scoop 1 / 0. On LASA
+(``bench_segmentation_seeds.py --segment-option tolerance_correlation=None``, table
+``bench_segmentation_seeds_learned_tolerance_kalman.json``) the data choose AR deviations and one more step than the
+white default on most routes (4 / 3 / 1 / 1, 4 / 2, 7 / 5, 4 / 3 per demonstration), one route grouping per shape;
+Multi_Models_2, _3 and _4 give every demonstration its count on 9-10 of 10 seeds, but Multi_Models_1's route {0-2}
+gets 4 steps on 7 of 10 (5 on the others) and Multi_Models_4's route {4-6} aligns to one count on 8 of 10. It costs
+time: 12.3-14.6 s per seed on Multi_Models_3 (the climbs under an AR tolerance take more moves), against the 10 s
+budget. So it is an option, not the default. With the Prais-Winsten form (commit 58b575a, tables
+``bench_segmentation_segment_learned_tolerance.json`` and ``bench_segmentation_seeds_learned_tolerance.json``): 87.5 %
+(curved_dwell_3d with one demonstration 7 of 10), Multi_Models_1 stable, Multi_Models_3's route {4-6} aligned on 6 of
+10 seeds. Choosing the tolerance before the chains are polished, under it (commit a98d740, same benchmarks, the
+Prais-Winsten form) found 88.2 % but split Multi_Models_1's steps differently on 3 of 10 seeds.
 
 Position (``position_weight`` tau; NIW kernels of :mod:`lfd_torch.gmm`). An affine direction field is defined over
 the whole space, so with directions alone one state may carry two pieces far apart whose directions one field
@@ -626,44 +634,45 @@ class _Run:
     # ------------------------------------------------------------------ helpers
     def _set_tolerance(self, rho: float, sigma: float | None = None, tau: float = 0.0) -> None:
         """Use the tolerance (rho, sigma, tau) in the collapsed score and the map search (module docstring,
-        "Correlated tolerance"): its prior and the first-sample / continuing views of the observations. (0, None,
+        "Correlated tolerance"): its prior and the views of the observations by age in a run. (0, None,
         0) is the white tolerance of the sampler (``tolerance_correlation=0``)."""
         sigma = self.cfg.direction_noise if sigma is None else float(sigma)
         self.rho, self.sigma, self.tau_white = float(rho), sigma, float(tau)
         self.score_prior = correlated_tolerance_prior(self.prior, self.rho, sigma / self.cfg.direction_noise)
-        start, cont = correlated_tolerance_observations(self.obs, self.rho, self.cfg.direction_noise, sigma, tau)
+        views = correlated_tolerance_observations(self.obs, self.rho, self.cfg.direction_noise, sigma, tau)
         n = self.N * self.T
-        self.ar_start = tuple(a.reshape(1, n, *a.shape[2:]) for a in start)
-        self.ar_cont = tuple(a.reshape(1, n, *a.shape[2:]) for a in cont)
+        # (ages, n, .) every view stacked: a sample of age a in its run is seen in view a (:meth:`_score_view`)
+        self.ar_views = tuple(torch.stack([v[i].reshape(n, *v[i].shape[2:]) for v in views]) for i in range(3))
+        self.ar_start = tuple(a[:1] for a in self.ar_views)
+        self.ar_cont = tuple(a[-1:] for a in self.ar_views)  # the Viterbi proposal's view of a later phase
 
     def _score_view(self, s: Tensor) -> tuple[Tensor | None, Tensor, Tensor]:
-        """What the collapsed score's field evidence sees of labellings s (B, N, T): which samples (B, N T) start a
-        run (None for a white tolerance, where it does not matter), their weights w (B, N T) and the per-sample log
-        Jacobian d / 2 log w (B, N T), 0 on padding (:func:`correlated_tolerance_observations`; the regressors and
-        directions of both views are shared by all labellings: :meth:`_stats`)."""
+        """What the collapsed score's field evidence sees of labellings s (B, N, T): every sample's age in its run
+        (B, N T), capped at the filter's memory (None for a white tolerance, where it does not matter), the weights w
+        (B, N T) and the per-sample log Jacobian d / 2 log w (B, N T), 0 on padding
+        (:func:`correlated_tolerance_observations`; the views are shared by all labellings: :meth:`_stats`)."""
         B, n = s.shape[0], self.N * self.T
         valid = self.valid.reshape(1, n)
         if self.rho == 0.0:
-            first, w = None, self.ar_start[2].expand(B, n)
+            age, w = None, self.ar_start[2].expand(B, n)
         else:
-            first = torch.ones_like(s, dtype=torch.bool)
-            first[..., 1:] = s[..., 1:] != s[..., :-1]
-            first = first.reshape(B, n)
-            w = torch.where(first, self.ar_start[2], self.ar_cont[2])
+            age = duration_phases(s, self.ar_views[2].shape[0]).reshape(B, n)
+            w = self.ar_views[2].gather(0, age)
         jac = 0.5 * self.d * torch.log(w.clamp_min(1e-300)) * valid
-        return first, w, jac
+        return age, w, jac
 
-    def _stats(self, first: Tensor | None, w: Tensor, onehot: Tensor) -> tuple[Tensor, ...]:
+    def _viewed(self, age: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Regressors (1 or B, n, p) and directions (1 or B, n, d) of every sample in the view of its age."""
+        if age is None:
+            return self.ar_start[0], self.ar_start[1]
+        z, u = self.ar_views[0], self.ar_views[1]
+        return (z.gather(0, age.unsqueeze(-1).expand(*age.shape, z.shape[-1])),
+                u.gather(0, age.unsqueeze(-1).expand(*age.shape, u.shape[-1])))
+
+    def _stats(self, age: Tensor | None, w: Tensor, onehot: Tensor) -> tuple[Tensor, ...]:
         """Field statistics (:func:`field_statistics`) of labellings onehot (B, n, K) with weights w (B, n), each
-        sample in its first-sample or continuing view as ``first`` (B, n) says (None: the white view): two calls on
-        the shared views, the weights split between them (the statistics are linear in the weights)."""
-        z, u = self.ar_start[0], self.ar_start[1]
-        if first is None:
-            return field_statistics(z, u, w, onehot)
-        f = first.to(self.dtype)
-        counts, szz, suz, suu = field_statistics(z, u, w * f, onehot)
-        _, szz2, suz2, suu2 = field_statistics(self.ar_cont[0], self.ar_cont[1], w * (1.0 - f), onehot)
-        return counts, szz + szz2, suz + suz2, suu + suu2
+        sample in the view of its age (B, n) (None: the white view)."""
+        return field_statistics(*self._viewed(age), w, onehot)
 
     def _rand(self, *shape: int) -> Tensor:
         return torch.rand(*shape, generator=self.gen, dtype=self.dtype, device=self.device)
@@ -1136,22 +1145,19 @@ class _Run:
         """(C,) collapsed score of every chain's current (s, F): :meth:`_collapsed_score`."""
         return self._collapsed_score(self.s, self.F, self.phase, self.alpha, self.kappa, self.mass)
 
-    def _profile_scales(self, first: Tensor | None, w: Tensor, onehot: Tensor) -> Tensor:
+    def _profile_scales(self, age: Tensor | None, w: Tensor, onehot: Tensor) -> Tensor:
         """(B, n) Student-t scales lambda_t at their conditional mode given the posterior-mean field of the labelling
         ``onehot`` (B, n, K) (samples seen as :meth:`_score_view` says, weights w): the mode of Gamma((nu + d) / 2,
         (nu + q_t) / 2), q_t the squared Mahalanobis residual."""
         nu, d = self.cfg.robust_dof, self.d
-        mean, psi = field_mixture_posterior_mean(self.score_prior, *self._stats(first, w, onehot),
+        mean, psi = field_mixture_posterior_mean(self.score_prior, *self._stats(age, w, onehot),
                                                  self.cfg.straight_weight)
         # each sample's residual under its own state only (padding rows of onehot are 0: q = 0 there)
         B, n, K = onehot.shape
         own_field = (onehot @ mean.flatten(-2)).unflatten(-1, mean.shape[-2:])  # (B, n, d, p)
         own_prec = (onehot @ torch.cholesky_inverse(torch.linalg.cholesky(psi)).flatten(-2)).unflatten(-1, (d, d))
-        z, u = self.ar_start[0], self.ar_start[1]
+        z, u = self._viewed(age)
         r = u - (own_field @ z.unsqueeze(-1)).squeeze(-1)  # (B, n, d)
-        if first is not None:
-            r_cont = self.ar_cont[1] - (own_field @ self.ar_cont[0].unsqueeze(-1)).squeeze(-1)
-            r = torch.where(first.unsqueeze(-1), r, r_cont)
         q = w * (r.unsqueeze(-2) @ own_prec @ r.unsqueeze(-1)).reshape(B, n)
         return max(nu + d - 2.0, 1e-3) / (nu + q)
 
@@ -1161,17 +1167,17 @@ class _Run:
         samples, its field evidence and its tempered position evidence. Each depends on the samples of its own state
         alone (with a tolerance correlation, also on which of them start a run)."""
         B, n, K = onehot.shape
-        first, w, jac = self._score_view(s)
+        age, w, jac = self._score_view(s)
         w = w.expand(B, n)
         lp = (onehot * jac.unsqueeze(-1)).sum(-2)
         nu = self.cfg.robust_dof
         if nu is not None:
-            lam = self._profile_scales(first, w, onehot)
+            lam = self._profile_scales(age, w, onehot)
             half = 0.5 * nu
             log_gamma = half * math.log(half) - math.lgamma(half) + (half - 1.0) * torch.log(lam) - half * lam
             lp = lp + (onehot * (log_gamma + 0.5 * self.d * torch.log(lam)).unsqueeze(-1)).sum(-2)
             w = w * lam
-        lp = lp + field_mixture_evidence(self.score_prior, *self._stats(first, w, onehot),
+        lp = lp + field_mixture_evidence(self.score_prior, *self._stats(age, w, onehot),
                                          self.cfg.straight_weight)[0]
         if self.tau > 0:
             lp = lp + niw_log_marginal_likelihood(self.pos_prior, *self._position_statistics(onehot))
@@ -1203,18 +1209,18 @@ class _Run:
         T, d = self.T, self.d
         valid = self.valid.to(self.dtype)
         onehot = (torch.nn.functional.one_hot(s, K).to(self.dtype) * valid.unsqueeze(-1)).reshape(B, N * T, K)
-        first, w, jac = self._score_view(s)
+        age, w, jac = self._score_view(s)
         lp = jac.sum(-1)
         parts = {}
         nu = self.cfg.robust_dof
         if nu is not None:
-            lam = self._profile_scales(first, w, onehot)
+            lam = self._profile_scales(age, w, onehot)
             half = 0.5 * nu
             log_gamma = half * math.log(half) - math.lgamma(half) + (half - 1.0) * torch.log(lam) - half * lam
             flat_valid = valid.reshape(1, N * T)
             lp = lp + ((log_gamma + 0.5 * d * torch.log(lam)) * flat_valid).sum(-1)
             w = w * lam
-        lp = lp + field_mixture_evidence(self.score_prior, *self._stats(first, w, onehot),
+        lp = lp + field_mixture_evidence(self.score_prior, *self._stats(age, w, onehot),
                                          self.cfg.straight_weight)[0].sum(-1)
         if self.tau > 0:  # the tempered NIW evidence of each state's positions
             lp = lp + niw_log_marginal_likelihood(self.pos_prior, *self._position_statistics(onehot)).sum(-1)
@@ -1678,10 +1684,10 @@ class _Run:
         N, T = self.N, self.T
         valid = self.valid.to(self.dtype).unsqueeze(-1)
         onehot = (torch.nn.functional.one_hot(s, K).to(self.dtype) * valid).reshape(B, N * T, K)
-        first, w, _ = self._score_view(s)
+        age, w, _ = self._score_view(s)
         if self.cfg.robust_dof is not None:
-            w = w * self._profile_scales(first, w, onehot)
-        field, noise = field_mixture_posterior_mean(self.score_prior, *self._stats(first, w, onehot),
+            w = w * self._profile_scales(age, w, onehot)
+        field, noise = field_mixture_posterior_mean(self.score_prior, *self._stats(age, w, onehot),
                                                     self.cfg.straight_weight)  # (B, K, d, p), (B, K, d, d)
         le, le_first = self._run_emissions(field[:, None], noise[:, None])  # (B, N, T, K)
         if self.tau > 0:
@@ -1725,16 +1731,17 @@ class _Run:
         N, T = self.N, self.T
         onehot = (torch.nn.functional.one_hot(s, K).to(self.dtype) * self.valid.to(self.dtype).unsqueeze(-1))
         onehot = onehot.reshape(1, N * T, K)
-        first, w, _ = self._score_view(s[None])
+        age, w, _ = self._score_view(s[None])
         if self.cfg.robust_dof is not None:
-            w = w * self._profile_scales(first, w, onehot)
-        mean, psi = field_mixture_posterior_mean(self.score_prior, *self._stats(first, w, onehot),
+            w = w * self._profile_scales(age, w, onehot)
+        mean, psi = field_mixture_posterior_mean(self.score_prior, *self._stats(age, w, onehot),
                                                  self.cfg.straight_weight)
         return mean[0], psi[0]
 
     def _run_emissions(self, field: Tensor, noise: Tensor) -> tuple[Tensor, Tensor | None]:
         """(B, N, T, K) log densities of every sample under fields (B, 1, K, d, p) and noise (B, 1, K, d, d) as a
-        continuing sample of a run, and (with a tolerance correlation; else None) as a run's first sample."""
+        sample of a run in its oldest view (:data:`~lfd_torch.segmentation.field.TOLERANCE_MEMORY` points or more
+        into it), and (with a tolerance correlation; else None) as a run's first sample."""
         shape = (1, self.N, self.T)
         z, u, w = (a.reshape(*shape, *a.shape[2:]) for a in self.ar_cont)
         le = field_log_likelihood(z, u, w, field, noise, self.cfg.robust_dof)
