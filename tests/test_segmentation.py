@@ -23,6 +23,7 @@ import lfd_torch.segmentation.sampler as sampler_module
 import lfd_torch.segmentation.segmentation as segmentation_module
 from lfd_torch.data import Demos
 from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError, StoreError, TooFewSamplesError
+from lfd_torch.gmm import niw_log_marginal_likelihood
 from lfd_torch.segmentation import (
     BetaProcessHMMSampler,
     BPGMHMMSegmenter,
@@ -845,6 +846,66 @@ def test_collapsed_evidence_prefers_one_state_per_leg(corner):
     scores = [float(run._collapsed_score(s, torch.ones(1, 1, k, dtype=torch.bool), ph, run.alpha, run.kappa,
                                          run.mass)) for s, k, ph in ((split, 2, phases), (one, 1, torch.arange(59).clamp_max(2).view(1, 1, -1)))]  # fmt: skip
     assert (scores[0] > scores[1]) == corner
+
+
+def _position_run(path: torch.Tensor, tau: float, mixture: bool) -> "sampler_module._Run":
+    """A one-chain sampler state on one 2-D path with the position term (weight tau) for scoring labellings."""
+    v = torch.gradient(path, dim=0)[0] / 0.01
+    cfg = sampler_module.BetaProcessHMMSampler(n_chains=1, position_weight=tau, position_mixture=mixture)
+    x, lengths = sampler_module._pad([path])
+    vp, _ = sampler_module._pad([v])
+    return sampler_module._Run(cfg, x, vp, lengths, torch.Generator().manual_seed(0), None, 3, (1e-3, 1e-6))
+
+
+def test_position_mixture_occupancy_is_the_chinese_restaurant_process_of_the_labels():
+    """At tau = 1 the occupancy evidence of ``position_mixture`` (per state sum_i log Gamma(n_ik), plus the
+    labelling-free -sum_i log Gamma(1 + n_i)) is log p(s) of a Chinese restaurant process with concentration 1,
+    here the product of its sequential predictive probabilities (a naive loop over the samples)."""
+    g = torch.Generator().manual_seed(2)
+    n, K = 40, 4
+    path = torch.cumsum(torch.randn(n, 2, generator=g, dtype=torch.float64), 0)
+    run = _position_run(path, 1.0, True)
+    labels = torch.randint(0, K - 1, (n,), generator=g)  # state K - 1 unused
+    onehot = torch.nn.functional.one_hot(labels, K).to(torch.float64).unsqueeze(0)
+    score = float(run._occupancy_terms(onehot).sum()) + run._occupancy_constant()
+    ref, seen = 0.0, collections.Counter()
+    for t, k in enumerate(labels.tolist()):
+        ref += math.log((seen[k] if seen[k] else 1.0) / (t + 1.0))
+        seen[k] += 1
+    assert score == pytest.approx(ref, abs=1e-9)
+    off = _position_run(path, 1.0, False)
+    assert float(off._occupancy_terms(onehot).abs().sum()) == 0.0 and off._occupancy_constant() == 0.0
+
+
+@pytest.mark.parametrize("n", [30, 120])
+def test_position_mixture_charges_a_cut_leg_its_occupancy_and_keeps_distant_pieces_apart(n):
+    """The tempered position evidence (module docstring, "Position") of a leg cut into two states, against one
+    state: as a mixture over space (``position_mixture``) the occupancies charge the cut about tau n log 2 nats
+    more than the Gaussians alone do, so it gains nothing on a leg of a path (L-shaped, the leg half of it), while
+    two pieces of one state far apart still gain far more by their own states than the occupancies cost."""
+    tau = 1.0 / 3.0
+    t = torch.linspace(0.0, 1.0, n, dtype=torch.float64)
+    noise = 1e-2 * torch.randn(2 * n, 2, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    path = torch.cat([torch.stack([t, 0.0 * t], -1), torch.stack([1.0 + 0.0 * t, t], -1)]) + noise
+    apart = path.clone()
+    apart[n // 2: n, 0] += 5.0  # the leg's second half moved away
+    one = torch.zeros(1, 2 * n, 3, dtype=torch.float64)
+    one[0, :n, 0] = one[0, n:, 2] = 1.0
+    two = one.clone()
+    two[0, n // 2: n] = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+
+    def gain(p, mixture):
+        run = _position_run(p, tau, mixture)
+        return [float(niw_log_marginal_likelihood(run.pos_prior, *run._position_statistics(o)).sum()
+                      + run._occupancy_terms(o).sum()) for o in (two, one)]
+
+    with_mix, without = (lambda a: a[0] - a[1])(gain(path, True)), (lambda a: a[0] - a[1])(gain(path, False))
+    charge = without - with_mix
+    # log Gamma(x) + log Gamma(x) - log Gamma(2 x) = -2 x log 2 + O(log x), x = tau n / 2
+    assert charge == pytest.approx(tau * n * math.log(2.0), abs=0.5 * math.log(tau * n) + 1.5)
+    assert with_mix < 0.0
+    far = gain(apart, True)
+    assert far[0] - far[1] > 10.0
 
 
 def test_collapsed_selection_returns_the_best_collapsed_score_of_the_same_chains():

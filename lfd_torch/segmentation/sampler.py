@@ -391,7 +391,7 @@ SELECTIONS = ("joint", "collapsed", "modal", "map")
 
 def check_hyperparameters(**values: object) -> None:
     """Raise InvalidArgumentError naming the first hyperparameter outside :data:`HYPERPARAMETER_RANGES` (booleans
-    ``resample_hyperparameters`` and ``progress`` must be bool; ``robust_dof`` and ``position_weight`` may be None;
+    ``resample_hyperparameters``, ``position_mixture`` and ``progress`` must be bool; ``robust_dof`` and ``position_weight`` may be None;
     ``selection`` is one of
     :data:`SELECTIONS`)."""
     for name, value in values.items():
@@ -399,7 +399,7 @@ def check_hyperparameters(**values: object) -> None:
             if value not in SELECTIONS:
                 raise InvalidArgumentError(f"selection must be one of {SELECTIONS}, got {value!r}")
             continue
-        if name in ("resample_hyperparameters", "progress"):
+        if name in ("resample_hyperparameters", "progress", "position_mixture"):
             if not isinstance(value, bool):
                 raise InvalidArgumentError(f"{name} must be a bool, got {value!r}")
             continue
@@ -433,6 +433,9 @@ class BetaProcessHMMSampler:
         robust_dof: nu of the Student-t direction emission (None: Gaussian), see :mod:`.field`.
         position_weight: tau of the tempered position term of the emission (module docstring, "Position"), in
             [0, 1]; None: 1 / D, D the minimum duration in grid samples; 0: directions alone.
+        position_mixture: the tempered position term of the collapsed score is that of a mixture over space
+            (each state's Gaussian times its weight in the sequence, the weights integrated out): cutting a leg no
+            longer raises the positions' density (module docstring, "Position"); acts through ``selection="map"``.
         straight_weight: rho in [0, 1), prior probability that a state's field is straight (slope 0) in the
             collapsed score, so in ``selection="map"`` (module docstring, "Straight states"); 0: affine fields only.
         tolerance_correlation: rho in [0, 1), the correlation of consecutive deviations of a direction from its
@@ -465,6 +468,7 @@ class BetaProcessHMMSampler:
         slope_scale: float = 1.0,
         robust_dof: float | None = 4.0,
         position_weight: float | None = 0.0,
+        position_mixture: bool = False,
         straight_weight: float = 0.0,
         tolerance_correlation: float | None = 0.0,
         n_chains: int = 4,
@@ -481,7 +485,7 @@ class BetaProcessHMMSampler:
             feature_mass=feature_mass, feature_concentration=feature_concentration,
             transition_concentration=transition_concentration, stickiness=stickiness,
             direction_noise=direction_noise, extra_dof=extra_dof, slope_scale=slope_scale, robust_dof=robust_dof,
-            position_weight=position_weight, straight_weight=straight_weight,
+            position_weight=position_weight, position_mixture=position_mixture, straight_weight=straight_weight,
             tolerance_correlation=tolerance_correlation, n_chains=n_chains,
             n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
             birth_window=birth_window, birth_prior_mix=birth_prior_mix,
@@ -495,6 +499,7 @@ class BetaProcessHMMSampler:
         self.direction_noise = float(direction_noise)
         self.robust_dof = None if robust_dof is None else float(robust_dof)
         self.position_weight = None if position_weight is None else float(position_weight)
+        self.position_mixture = bool(position_mixture)
         self.straight_weight = float(straight_weight)
         self.tolerance_correlation = None if tolerance_correlation is None else float(tolerance_correlation)
         self.extra_dof = float(extra_dof)
@@ -711,6 +716,32 @@ class _Run:
     def _position_statistics(self, onehot: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Tempered NIW statistics (tau n, tau sum x, tau sum x x^T) of the positions per state; onehot (B, N T, K)."""
         return sufficient_statistics(self._chain_view(self.pos, 3).flatten(1, 2), onehot * self.tau)
+
+    def _occupancy_terms(self, onehot: Tensor) -> Tensor:
+        """(B, K) per-state part of the tempered occupancy evidence of ``position_mixture`` (module docstring,
+        "Position"): sum over sequences of log Gamma(tau n_ik) over the states a sequence visits (0 without it);
+        onehot (B, N T, K)."""
+        B, _, K = onehot.shape
+        if not (self.tau > 0 and self.cfg.position_mixture):
+            return onehot.new_zeros(B, K)
+        x = self.tau * onehot.reshape(B, self.N, self.T, K).sum(2)  # (B, N, K) tempered occupancies
+        return torch.where(x > 0, torch.lgamma(x.clamp_min(1e-12)), torch.zeros_like(x)).sum(1)
+
+    def _occupancy_constant(self) -> float:
+        """The labelling-free part of the occupancy evidence: -sum_i log Gamma(1 + tau n_i)."""
+        if not (self.tau > 0 and self.cfg.position_mixture):
+            return 0.0
+        return -float(torch.lgamma(1.0 + self.tau * self.lengths.to(self.dtype)).sum())
+
+    def _occupancy_log_weights(self, onehot: Tensor) -> Tensor:
+        """(B, N, 1, K) tau log pi_ik, the predictive occupancies (tau n_ik + 1 / K) / (tau n_i + 1) of the
+        Viterbi proposal under ``position_mixture`` (0 without it); onehot (B, N T, K)."""
+        B, _, K = onehot.shape
+        if not (self.tau > 0 and self.cfg.position_mixture):
+            return onehot.new_zeros(B, self.N, 1, K)
+        x = self.tau * onehot.reshape(B, self.N, self.T, K).sum(2)
+        pi = (x + 1.0 / K) / (x.sum(-1, keepdim=True) + 1.0)
+        return (self.tau * torch.log(pi)).unsqueeze(2)
 
     def _marginal(self, features: Tensor, weights: Tensor, log_emission: Tensor, lengths: Tensor,
                   dwell_ll: Tensor | None = None) -> Tensor:
@@ -1181,6 +1212,7 @@ class _Run:
                                          self.cfg.straight_weight)[0]
         if self.tau > 0:
             lp = lp + niw_log_marginal_likelihood(self.pos_prior, *self._position_statistics(onehot))
+            lp = lp + self._occupancy_terms(onehot)
         return lp
 
     def _collapsed_score(self, s: Tensor, F: Tensor, phase: Tensor, alpha: Tensor, kappa: Tensor,
@@ -1222,8 +1254,9 @@ class _Run:
             w = w * lam
         lp = lp + field_mixture_evidence(self.score_prior, *self._stats(age, w, onehot),
                                          self.cfg.straight_weight)[0].sum(-1)
-        if self.tau > 0:  # the tempered NIW evidence of each state's positions
+        if self.tau > 0:  # the tempered NIW evidence of each state's positions (and of its occupancies)
             lp = lp + niw_log_marginal_likelihood(self.pos_prior, *self._position_statistics(onehot)).sum(-1)
+            lp = lp + self._occupancy_terms(onehot).sum(-1) + self._occupancy_constant()
         parts["emission"] = lp
         parts["dwell"] = (lp.new_zeros(B) if self.dwell is None
                           else dwell_evidence(self.dwell_prior, self.dwell, self.dwell_mask, phase))
@@ -1660,6 +1693,8 @@ class _Run:
         le, le_first = le[0], None if le_first is None else le_first[0]
         if self.tau > 0:
             pos = self.tau * gaussian_log_density(self.pos, *self._posterior_mean_positions(s, K))
+            onehot = torch.nn.functional.one_hot(s, K).to(self.dtype) * self.valid.to(self.dtype).unsqueeze(-1)
+            pos = pos + self._occupancy_log_weights(onehot.reshape(1, self.N * self.T, K))[0]
             le = le + pos
             le_first = None if le_first is None else le_first + pos
         counts = transition_counts(s, self.lengths, K, free_transitions(duration_phases(s, D), D)).to(self.dtype)
@@ -1694,6 +1729,7 @@ class _Run:
             post = niw_posterior(self.pos_prior, *self._position_statistics(onehot))
             cov = post.scale / (post.dof - self.d - 1.0)[..., None, None]
             pos = self.tau * gaussian_log_density(self.pos, post.mean[:, None], cov[:, None])
+            pos = pos + self._occupancy_log_weights(onehot)
             le = le + pos
             le_first = None if le_first is None else le_first + pos
         lengths = self.lengths.expand(B, N)

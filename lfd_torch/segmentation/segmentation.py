@@ -996,6 +996,7 @@ def segment(
     slope_scale: float = 1.0,
     robust_dof: float | None = 4.0,
     position_weight: float | None = None,
+    position_mixture: bool = False,
     straight_weight: float = 0.5,
     tolerance_correlation: float | None = 0.0,
     dwell_cue: bool = True,
@@ -1035,6 +1036,9 @@ def segment(
             straight and multi-demonstration cases against single curved demonstrations (README).
         position_weight: tau of the tempered position Gaussian of every state, in [0, 1]; None: 1 / D (D the
             minimum duration in grid samples, the default); 0: directions alone (:mod:`.sampler`, "Position").
+        position_mixture: the position term as a mixture over space, each state's Gaussian times its occupancy
+            of the sequence (integrated out), so that cutting a leg does not raise the positions' density
+            (:mod:`.sampler`, "Position"); acts through ``selection="map"``.
         straight_weight: prior probability that a state's field is straight (slope 0) in the collapsed score, in
             [0, 1); it acts through ``selection="map"`` (:mod:`.sampler`, "Straight states"); 0: every field affine.
         tolerance_correlation: rho in [0, 1), the correlation of consecutive deviations of a direction from its
@@ -1081,7 +1085,7 @@ def segment(
         feature_mass=feature_mass, feature_concentration=feature_concentration,
         transition_concentration=transition_concentration, stickiness=stickiness,
         direction_noise=direction_noise, extra_dof=extra_dof, slope_scale=slope_scale, robust_dof=robust_dof,
-        position_weight=position_weight, tolerance_correlation=tolerance_correlation,
+        position_weight=position_weight, position_mixture=position_mixture, tolerance_correlation=tolerance_correlation,
         straight_weight=straight_weight, n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
         birth_window=birth_window, birth_prior_mix=birth_prior_mix,
         resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
