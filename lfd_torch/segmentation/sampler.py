@@ -180,12 +180,22 @@ samples): a leg of n grid points counts as n / D position observations. Temperin
 conjugate (the NIW statistics are weighted by tau; the collapsed score adds the tempered NIW evidence of each
 state's positions, the joint log probability the NIW density of (mu_k, Sigma_k)); births draw (mu*, Sigma*)
 from the tempered posterior of the same window as the field. ``position_weight=0`` is the direction-only model
-(nothing is drawn for the positions; the sampler's default). Known bias: tempering does not remove the split gain,
-it scales it, to about (n / D) log 2 nats for a leg of n grid points traversed at an even pace, against about 5
-nats per switch from the transitions; so the term presses for cuts on long legs whatever the directions say. It
-finds some mild constant-speed corners of single demonstrations for the fields and cuts some long arcs
+(nothing is drawn for the positions; the sampler's default). Not neutral about cuts: if only the variance along
+a leg traversed at an even pace mattered, cutting it in two would gain (n / D) log 2 nats for a leg of n grid
+points; a leg's perpendicular spread is far below the prior's expected covariance and the second state pays its
+own normalisation, so the measured gain is -1.1 to -0.8 nats on legs of 10-15 grid points, 0.1 at 30 and 3.2-3.8 at
+60 (tau 1/3; ``experiments/diagnose_position.py``, table ``diagnose_position.json``): about neutral or a charge on the
+80-point grid, a pull toward cuts only on long legs. Its weight moves which mild corners are found, both ways
 (``position_weight`` 0.1 and 0.6 against 1 / D on the synthetic benchmark, README, "What the position term does to
-the steps"); a spatial term that anchors states without rewarding cuts along a leg is open.
+the steps"). ``position_mixture=True`` scores the positions as a mixture over space instead: each state's tempered
+Gaussian times its occupancy pi_ik of sequence i, pi_i integrated out under a Chinese restaurant process of
+concentration 1 over the tempered counts x_ik = tau n_ik (per state sum_i log Gamma(x_ik), plus the
+labelling-free -sum_i log Gamma(1 + tau n_i); :meth:`_Run._occupancy_terms`), so that a uniform stretch is one
+component, as in a Bayesian GMM; the Viterbi proposal adds tau log of the predictive occupancies. It acts through
+the collapsed score (the chains sample the plain term). The occupancies charge a cut about tau n log 2 nats more
+(-2.3 to -17.8 nats on the same legs): on the 280 synthetic cases every switch 82.5 % against 86.4 %, 12 cases lost,
+each one step short, one gained (README; table ``bench_segmentation_segment_position_mixture.json``). So a spatial
+term neutral about a cut along a leg of any length is open.
 Measured with ``selection="map"`` and tau = 1 / D (``experiments/bench_segmentation_seeds.py --selection map
 --segment-option position_weight=None``): every demonstration and route of LASA Multi_Models_1-4 gets its most
 common step count on 9 or 10 of 10 seeds, one route grouping per shape (without it, Multi_Models_4: 5-10 of 10,
