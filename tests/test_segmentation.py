@@ -651,7 +651,7 @@ def test_bad_input_typed_errors():
         ("stickiness", float("inf")), ("birth_window", 1.5), ("birth_prior_mix", 1.0), ("burn_in", 1.0),
         ("direction_noise", 0.0), ("robust_dof", -1.0), ("progress", 1), ("position_weight", 1.5),
         ("position_weight", float("nan")), ("position_weight", "1/D"), ("straight_weight", 1.0), ("straight_weight", -0.1),
-        ("tolerance_correlation", 1.0), ("tolerance_correlation", float("nan")),
+        ("tolerance_correlation", 1.0), ("tolerance_correlation", float("nan")), ("position_mixture", 1),
     ],
 )  # fmt: skip
 def test_hyperparameters_that_scale_the_cost_are_bounded(name, value):

@@ -401,9 +401,8 @@ SELECTIONS = ("joint", "collapsed", "modal", "map")
 
 def check_hyperparameters(**values: object) -> None:
     """Raise InvalidArgumentError naming the first hyperparameter outside :data:`HYPERPARAMETER_RANGES` (booleans
-    ``resample_hyperparameters``, ``position_mixture`` and ``progress`` must be bool; ``robust_dof`` and ``position_weight`` may be None;
-    ``selection`` is one of
-    :data:`SELECTIONS`)."""
+    ``resample_hyperparameters``, ``position_mixture`` and ``progress`` must be bool; ``robust_dof``,
+    ``position_weight`` and ``tolerance_correlation`` may be None; ``selection`` is one of :data:`SELECTIONS`)."""
     for name, value in values.items():
         if name == "selection":
             if value not in SELECTIONS:
