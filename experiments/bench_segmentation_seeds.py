@@ -203,7 +203,8 @@ def main(argv: list[str] | None = None) -> None:
                          "attractor_bound_pct": round(bound, 3), "attractor_nearest_pct": round(nearest, 3),
                          "route_coverage_pct": round(coverage, 1),
                          "steps_per_demo": [len(seg.step_sequence(i)) for i in range(demos.n_demos)],
-                         "routes": [list(r) for r in seg.routes], "route_of": seg.route_of.tolist()})
+                         "routes": [list(r) for r in seg.routes], "route_of": seg.route_of.tolist(),
+                         "collapsed_log_prob": round(float(seg.info["collapsed_log_prob"]), 3)})
             for i in range(demos.n_demos):
                 counts[i][len(seg.step_sequence(i))] += 1
             groups = sorted(tuple(i for i in range(demos.n_demos) if int(seg.route_of[i]) == r) for r in range(seg.n_routes))
