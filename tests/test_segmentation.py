@@ -819,10 +819,11 @@ def test_segment_lasa_refuses_publish_in_a_multirun(tmp_path):
     assert not (tmp_path / "results").exists()
 
 
-def _run_on(path: torch.Tensor, min_duration: int = 3) -> "sampler_module._Run":
-    """A one-chain sampler state on one 2-D path (its grid points) for scoring labellings."""
+def _run_on(path: torch.Tensor, min_duration: int = 3, **options) -> "sampler_module._Run":
+    """A one-chain sampler state on one 2-D path (its grid points) for scoring labellings; ``options`` of the
+    sampler."""
     v = torch.gradient(path, dim=0)[0] / 0.01
-    cfg = sampler_module.BetaProcessHMMSampler(extra_dof=30.0, n_chains=1)
+    cfg = sampler_module.BetaProcessHMMSampler(**{"extra_dof": 30.0, "n_chains": 1, **options})
     x, lengths = sampler_module._pad([path])
     vp, _ = sampler_module._pad([v])
     return sampler_module._Run(cfg, x, vp, lengths, torch.Generator().manual_seed(0), None, min_duration,
@@ -848,15 +849,6 @@ def test_collapsed_evidence_prefers_one_state_per_leg(corner):
     assert (scores[0] > scores[1]) == corner
 
 
-def _position_run(path: torch.Tensor, tau: float, mixture: bool) -> "sampler_module._Run":
-    """A one-chain sampler state on one 2-D path with the position term (weight tau) for scoring labellings."""
-    v = torch.gradient(path, dim=0)[0] / 0.01
-    cfg = sampler_module.BetaProcessHMMSampler(n_chains=1, position_weight=tau, position_mixture=mixture)
-    x, lengths = sampler_module._pad([path])
-    vp, _ = sampler_module._pad([v])
-    return sampler_module._Run(cfg, x, vp, lengths, torch.Generator().manual_seed(0), None, 3, (1e-3, 1e-6))
-
-
 def test_position_mixture_occupancy_is_the_chinese_restaurant_process_of_the_labels():
     """At tau = 1 the occupancy evidence of ``position_mixture`` (per state sum_i log Gamma(n_ik), plus the
     labelling-free -sum_i log Gamma(1 + n_i)) is log p(s) of a Chinese restaurant process with concentration 1,
@@ -864,7 +856,7 @@ def test_position_mixture_occupancy_is_the_chinese_restaurant_process_of_the_lab
     g = torch.Generator().manual_seed(2)
     n, K = 40, 4
     path = torch.cumsum(torch.randn(n, 2, generator=g, dtype=torch.float64), 0)
-    run = _position_run(path, 1.0, True)
+    run = _run_on(path, position_weight=1.0, position_mixture=True)
     labels = torch.randint(0, K - 1, (n,), generator=g)  # state K - 1 unused
     onehot = torch.nn.functional.one_hot(labels, K).to(torch.float64).unsqueeze(0)
     score = float(run._occupancy_terms(onehot).sum()) + run._occupancy_constant()
@@ -873,7 +865,7 @@ def test_position_mixture_occupancy_is_the_chinese_restaurant_process_of_the_lab
         ref += math.log((seen[k] if seen[k] else 1.0) / (t + 1.0))
         seen[k] += 1
     assert score == pytest.approx(ref, abs=1e-9)
-    off = _position_run(path, 1.0, False)
+    off = _run_on(path, position_weight=1.0, position_mixture=False)
     assert float(off._occupancy_terms(onehot).abs().sum()) == 0.0 and off._occupancy_constant() == 0.0
 
 
@@ -895,7 +887,7 @@ def test_position_mixture_charges_a_cut_leg_its_occupancy_and_keeps_distant_piec
     two[0, n // 2: n] = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
 
     def gain(p, mixture):
-        run = _position_run(p, tau, mixture)
+        run = _run_on(p, position_weight=tau, position_mixture=mixture)
         return [float(niw_log_marginal_likelihood(run.pos_prior, *run._position_statistics(o)).sum()
                       + run._occupancy_terms(o).sum()) for o in (two, one)]
 

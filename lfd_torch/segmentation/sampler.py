@@ -726,14 +726,21 @@ class _Run:
         """Tempered NIW statistics (tau n, tau sum x, tau sum x x^T) of the positions per state; onehot (B, N T, K)."""
         return sufficient_statistics(self._chain_view(self.pos, 3).flatten(1, 2), onehot * self.tau)
 
+    def _occupancies(self, onehot: Tensor) -> Tensor | None:
+        """(B, N, K) tempered occupancies tau n_ik of the labellings onehot (B, N T, K) under ``position_mixture``;
+        None without it."""
+        if not (self.tau > 0 and self.cfg.position_mixture):
+            return None
+        B, _, K = onehot.shape
+        return self.tau * onehot.reshape(B, self.N, self.T, K).sum(2)
+
     def _occupancy_terms(self, onehot: Tensor) -> Tensor:
         """(B, K) per-state part of the tempered occupancy evidence of ``position_mixture`` (module docstring,
         "Position"): sum over sequences of log Gamma(tau n_ik) over the states a sequence visits (0 without it);
         onehot (B, N T, K)."""
-        B, _, K = onehot.shape
-        if not (self.tau > 0 and self.cfg.position_mixture):
-            return onehot.new_zeros(B, K)
-        x = self.tau * onehot.reshape(B, self.N, self.T, K).sum(2)  # (B, N, K) tempered occupancies
+        x = self._occupancies(onehot)
+        if x is None:
+            return onehot.new_zeros(onehot.shape[0], onehot.shape[-1])
         return torch.where(x > 0, torch.lgamma(x.clamp_min(1e-12)), torch.zeros_like(x)).sum(1)
 
     def _occupancy_constant(self) -> float:
@@ -745,11 +752,10 @@ class _Run:
     def _occupancy_log_weights(self, onehot: Tensor) -> Tensor:
         """(B, N, 1, K) tau log pi_ik, the predictive occupancies (tau n_ik + 1 / K) / (tau n_i + 1) of the
         Viterbi proposal under ``position_mixture`` (0 without it); onehot (B, N T, K)."""
-        B, _, K = onehot.shape
-        if not (self.tau > 0 and self.cfg.position_mixture):
-            return onehot.new_zeros(B, self.N, 1, K)
-        x = self.tau * onehot.reshape(B, self.N, self.T, K).sum(2)
-        pi = (x + 1.0 / K) / (x.sum(-1, keepdim=True) + 1.0)
+        x = self._occupancies(onehot)
+        if x is None:
+            return onehot.new_zeros(onehot.shape[0], self.N, 1, onehot.shape[-1])
+        pi = (x + 1.0 / x.shape[-1]) / (x.sum(-1, keepdim=True) + 1.0)
         return (self.tau * torch.log(pi)).unsqueeze(2)
 
     def _marginal(self, features: Tensor, weights: Tensor, log_emission: Tensor, lengths: Tensor,
