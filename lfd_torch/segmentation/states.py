@@ -63,10 +63,11 @@ def _forward(
     norms = [norm]
     alpha = alpha / torch.where(norm > 0, norm, torch.ones_like(norm))
     out = [alpha]
+    one = torch.ones_like(norm)
     for t in range(1, T):
         alpha = torch.bmm(alpha.unsqueeze(1), transition).squeeze(1).mul_(e[:, t])
         norm = alpha.sum(-1, keepdim=True)
-        alpha = alpha / torch.where(norm > 0, norm, torch.ones_like(norm))
+        alpha.div_(torch.where(norm > 0, norm, one))
         norms.append(norm)
         if keep:
             out.append(alpha)
