@@ -891,7 +891,7 @@ def test_position_mixture_charges_a_cut_leg_its_occupancy_and_keeps_distant_piec
         return [float(niw_log_marginal_likelihood(run.pos_prior, *run._position_statistics(o)).sum()
                       + run._occupancy_terms(o).sum()) for o in (two, one)]
 
-    with_mix, without = (lambda a: a[0] - a[1])(gain(path, True)), (lambda a: a[0] - a[1])(gain(path, False))
+    with_mix, without = (a - b for a, b in (gain(path, True), gain(path, False)))
     charge = without - with_mix
     # log Gamma(x) + log Gamma(x) - log Gamma(2 x) = -2 x log 2 + O(log x), x = tau n / 2
     assert charge == pytest.approx(tau * n * math.log(2.0), abs=0.5 * math.log(tau * n) + 1.5)
