@@ -1124,6 +1124,41 @@ def test_map_search_batched_scores_equal_the_full_score_one_candidate_at_a_time(
         assert torch.allclose(fast, full, rtol=0, atol=1e-8), float((fast - full).abs().max())
 
 
+@pytest.mark.parametrize("tolerance", [None, (0.9, 0.1, 0.02)], ids=["white", "correlated_tolerance"])
+def test_student_t_profile_scales_equal_a_loop_over_samples(monkeypatch, tolerance):
+    """``_Run._profile_scales`` (every sample's squared Mahalanobis residual as one GEMM of its outer product
+    [u_t, z_t][u_t, z_t]^T against each state's quadratic form) against a loop: per sample, the residual under
+    its own state's posterior-mean field, q_t = w_t r_t^T E[Psi]^-1 r_t, lambda_t = (nu + d - 2) / (nu + q_t);
+    0-weight padding gives nu + d - 2 over nu. On the returned labelling and on one of its splits; with a
+    correlated tolerance each sample is seen in the view of its age in its run."""
+    from lfd_torch.segmentation.field import field_mixture_posterior_mean
+
+    syn = synthetic(*MUTATION_CASE)
+    runs = capture_runs(monkeypatch)
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="map")
+    run, res = runs[-1], seg.sampler
+    if tolerance is not None:
+        run._set_tolerance(*tolerance)
+    nu, d = run.cfg.robust_dof, run.d
+    labellings = [res.states[None], run._splits(res.states, res.features)[0][0][None]]
+    for s in labellings:
+        K = int(s.max()) + 1
+        onehot = (torch.nn.functional.one_hot(s, K).to(run.dtype) * run.valid.unsqueeze(-1)).reshape(1, -1, K)
+        age, w, _ = run._score_view(s)
+        got = run._profile_scales(age, w, onehot)[0]
+        mean, psi = field_mixture_posterior_mean(run.score_prior, *run._stats(age, w, onehot),
+                                                 run.cfg.straight_weight)
+        z, u = run._viewed(age)
+        labels, valid = s.reshape(-1), run.valid.reshape(-1)
+        for t in range(labels.numel()):
+            q = 0.0
+            if valid[t]:
+                k = int(labels[t])
+                r = u[0, t] - mean[0, k] @ z[0, t]
+                q = float(w.expand(1, -1)[0, t] * (r @ torch.linalg.solve(psi[0, k], r)))
+            assert float(got[t]) == pytest.approx((nu + d - 2.0) / (nu + q), rel=1e-10, abs=1e-12), t
+
+
 def test_map_search_shift_move_removes_a_run_its_fields_held_in_place(monkeypatch):
     """The shift move of the map search (``_Run._shifts``: remove a run and place the switch between its neighbours
     anywhere in the three runs), on the case that motivated it (benchmark family scoop_const_3d, one

@@ -64,11 +64,13 @@ def test_dwell_mask_marks_where_a_run_can_start():
         dwell_mask(torch.tensor([10]), 10, 1)
 
 
-def test_dwell_evidence_is_the_multivariate_student_t_of_the_regression(generator):
+@pytest.mark.parametrize("per_chain", [False, True])
+def test_dwell_evidence_is_the_multivariate_student_t_of_the_regression(generator, per_chain):
     """Closed form: under (mu, delta) | s2 ~ N(0, s2 V0), s2 ~ IG(nu0 / 2, S0 / 2), the observed c is a multivariate
-    Student t with nu0 dof, location 0 and scale S0 / nu0 (I + X V0 X^T) (scipy as the reference)."""
+    Student t with nu0 dof, location 0 and scale S0 / nu0 (I + X V0 X^T) (scipy as the reference); c shared by the
+    labellings (N, T) or one per labelling (B, N, T), as in the Geweke test."""
     N, T, D, B = 2, 30, 3, 4
-    c = torch.randn(N, T, generator=generator, dtype=F64) * 0.4
+    c = torch.randn(*((B,) if per_chain else ()), N, T, generator=generator, dtype=F64) * 0.4
     lengths = torch.tensor([30, 24])
     mask = dwell_mask(lengths, T, D)
     phase = _random_phases(generator, B, N, T, D)
@@ -77,7 +79,7 @@ def test_dwell_evidence_is_the_multivariate_student_t_of_the_regression(generato
     nu0, s0, v0 = float(prior.dof), float(prior.scale[0, 0]), prior.row_covariance.numpy()
     for b in range(B):
         X = dwell_regressors(phase[b], mask)[mask].numpy()
-        y = c[mask].numpy()
+        y = (c[b] if per_chain else c)[mask].numpy()
         scale = s0 / nu0 * (np.eye(len(y)) + X @ v0 @ X.T)
         want = stats.multivariate_t(loc=np.zeros(len(y)), shape=scale, df=nu0).logpdf(y)
         assert float(got[b]) == pytest.approx(want, abs=1e-8)

@@ -83,7 +83,6 @@ from lfd_torch.segmentation.field import (
     field_log_density,
     field_log_marginal_likelihood,
     field_posterior,
-    field_statistics,
 )
 
 __all__ = [
@@ -149,12 +148,22 @@ def dwell_regressors(phase: Tensor, mask: Tensor, dtype: torch.dtype = torch.flo
 
 
 def _statistics(c: Tensor, mask: Tensor, phase: Tensor) -> tuple[Tensor, ...]:
-    """MNIW statistics (counts, Szz, Suz, Suu) of shape (B, 1, ...) of the labellings' phases (B, N, T)."""
+    """MNIW statistics (counts, Szz, Suz, Suu) of shape (B, 1, ...) of the labellings' phases (B, N, T): those of
+    :func:`~lfd_torch.segmentation.field.field_statistics` for the regressors [1, b_t] over the mask, in closed
+    form (b_t is 0 or 1, so b_t^2 = b_t and only sum b_t and sum b_t c_t depend on the labelling; the map search
+    scores hundreds of labellings at once)."""
     B = phase.shape[0]
-    z = dwell_regressors(phase, mask, c.dtype).flatten(1, 2)  # (B, N T, 2)
-    u = c.reshape(-1, mask.numel(), 1)  # (1 or B, N T, 1)
-    m = mask.reshape(1, -1, 1).to(c.dtype).expand(B, -1, -1)
-    return field_statistics(z, u, torch.ones_like(u[..., 0]), m)
+    m = mask.to(c.dtype)
+    cm = (c * m).reshape(-1, mask.numel())  # (1 or B, N T)
+    b = ((phase == 0) & mask).to(c.dtype).reshape(B, -1)
+    n = m.sum().expand(B)
+    n_b = b.sum(-1)
+    s_c = cm.sum(-1).expand(B)
+    s_cb = (cm * b).sum(-1)
+    s_cc = (cm * c.reshape(-1, mask.numel())).sum(-1).expand(B)
+    szz = torch.stack([torch.stack([n, n_b], -1), torch.stack([n_b, n_b], -1)], -2)  # (B, 2, 2)
+    suz = torch.stack([s_c, s_cb], -1).unsqueeze(-2)  # (B, 1, 2)
+    return n.unsqueeze(-1), szz.unsqueeze(1), suz.unsqueeze(1), s_cc.view(B, 1, 1, 1)
 
 
 def dwell_posterior(prior: FieldPrior, c: Tensor, mask: Tensor, phase: Tensor) -> FieldPrior:

@@ -76,6 +76,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -337,8 +338,9 @@ def sample_field(params: FieldPrior, generator: torch.Generator) -> tuple[Tensor
         B (..., d, p), Psi (..., d, d).
     """
     d, p = params.mean.shape[-2:]
-    batch = torch.broadcast_shapes(params.mean.shape[:-2], params.scale.shape[:-2], params.dof.shape,
-                                   params.row_covariance.shape[:-2])
+    # numpy's rule, not torch.broadcast_shapes, whose first call imports sympy (about 0.3 s inside ``segment``)
+    batch = np.broadcast_shapes(params.mean.shape[:-2], params.scale.shape[:-2], params.dof.shape,
+                                params.row_covariance.shape[:-2])
     dt, dev = params.mean.dtype, params.mean.device
     niw = NIWPrior(mean=torch.zeros(*batch, d, dtype=dt, device=dev), kappa=torch.ones(batch, dtype=dt, device=dev),
                    dof=params.dof.expand(batch), scale=params.scale.expand(*batch, d, d))

@@ -659,6 +659,8 @@ class _Run:
         self.ar_views = tuple(torch.stack([v[i].reshape(n, *v[i].shape[2:]) for v in views]) for i in range(3))
         self.ar_start = tuple(a[:1] for a in self.ar_views)
         self.ar_cont = tuple(a[-1:] for a in self.ar_views)  # the Viterbi proposal's view of a later phase
+        x = torch.cat([self.ar_views[1], self.ar_views[0]], -1)  # (ages, n, d + p): [u_t, z_t] in every view
+        self.ar_outer = (x.unsqueeze(-1) * x.unsqueeze(-2)).flatten(-2)  # (ages, n, (d + p)^2), :meth:`_profile_scales`
 
     def _score_view(self, s: Tensor) -> tuple[Tensor | None, Tensor, Tensor]:
         """What the collapsed score's field evidence sees of labellings s (B, N, T): every sample's age in its run
@@ -775,13 +777,14 @@ class _Run:
         the other phases dwell_ll[..., 0] (module docstring, "Dwell"); phase 0 emits ``first_emission`` (B, T, K)
         when given (a correlated tolerance, module docstring); the last run is completed."""
         D = self.D
-        le = log_emission.masked_fill(~features.unsqueeze(-2), _NEG_INF).repeat_interleave(D, -1)
+        unused = ~features.unsqueeze(-2)
+        le = log_emission.masked_fill(unused, _NEG_INF).repeat_interleave(D, -1)  # one new (B, T, K D) tensor,
+        phases = le.unflatten(-1, (-1, D))  # (B, T, K, D), edited in place below
         if first_emission is not None:
-            first_le = first_emission.masked_fill(~features.unsqueeze(-2), _NEG_INF).repeat_interleave(D, -1)
-            le = torch.where((torch.arange(le.shape[-1], device=self.device) % D) == 0, first_le, le)
+            phases[..., 0] = first_emission.masked_fill(unused, _NEG_INF)
         if dwell_ll is not None:
-            first = (torch.arange(le.shape[-1], device=self.device) % D) == 0
-            le = le + torch.where(first, dwell_ll[..., 1:2], dwell_ll[..., 0:1])
+            phases[..., 0] += dwell_ll[..., 1:2]
+            phases[..., 1:] += dwell_ll[..., 0:1].unsqueeze(-1)
         return self._complete_last_run(le, lengths)
 
     def _flat_dwell(self, *expand: int) -> Tensor | None:
@@ -797,8 +800,9 @@ class _Run:
     def _complete_last_run(self, log_emission: Tensor, lengths: Tensor) -> Tensor:
         """Forbid ending inside the forced phases: the last run of a sequence lasts at least D samples too.
 
-        log_emission (B, T, K D) on the phase-expanded states; the last valid sample may only be emitted from a
-        last phase (D - 1), which is the semi-Markov model's end condition (a run is complete when it ends).
+        log_emission (B, T, K D) on the phase-expanded states, edited in place; the last valid sample may only be
+        emitted from a last phase (D - 1), which is the semi-Markov model's end condition (a run is complete when
+        it ends).
         """
         D = self.D
         if D <= 1:
@@ -806,7 +810,7 @@ class _Run:
         B, T, KD = log_emission.shape
         not_last_phase = (torch.arange(KD, device=self.device) % D) != D - 1  # (K D,)
         at_end = torch.arange(T, device=self.device).unsqueeze(0) == (lengths - 1).unsqueeze(1)  # (B, T)
-        return log_emission.masked_fill(at_end.unsqueeze(-1) & not_last_phase, _NEG_INF)
+        return log_emission.masked_fill_(at_end.unsqueeze(-1) & not_last_phase, _NEG_INF)
 
     def _marginal_all(self) -> Tensor:
         C, N, K = self.F.shape
@@ -1198,13 +1202,20 @@ class _Run:
         nu, d = self.cfg.robust_dof, self.d
         mean, psi = field_mixture_posterior_mean(self.score_prior, *self._stats(age, w, onehot),
                                                  self.cfg.straight_weight)
-        # each sample's residual under its own state only (padding rows of onehot are 0: q = 0 there)
+        # q_t = (u_t - B z_t)^T P (u_t - B z_t) = x_t^T M x_t with x_t = [u_t, z_t] and M = [[P, -P B], [-B^T P,
+        # B^T P B]] (P = Psi^-1): one GEMM of every sample's outer product x_t x_t^T against every state's M, instead
+        # of a tiny matrix product per sample; each sample then keeps its own state's (padding rows of onehot are 0)
         B, n, K = onehot.shape
-        own_field = (onehot @ mean.flatten(-2)).unflatten(-1, mean.shape[-2:])  # (B, n, d, p)
-        own_prec = (onehot @ torch.cholesky_inverse(torch.linalg.cholesky(psi)).flatten(-2)).unflatten(-1, (d, d))
-        z, u = self._viewed(age)
-        r = u - (own_field @ z.unsqueeze(-1)).squeeze(-1)  # (B, n, d)
-        q = w * (r.unsqueeze(-2) @ own_prec @ r.unsqueeze(-1)).reshape(B, n)
+        prec = torch.cholesky_inverse(torch.linalg.cholesky(psi))  # (B, K, d, d)
+        pb = prec @ mean
+        m = torch.cat([torch.cat([prec, -pb], -1), torch.cat([-pb.transpose(-1, -2), mean.transpose(-1, -2) @ pb], -1)],
+                      -2).flatten(-2)  # (B, K, (d + p)^2)
+        if age is None:  # one view for all labellings: (n, (d+p)^2) @ ((d+p)^2, B K)
+            q_all = (self.ar_outer[0] @ m.reshape(B * K, -1).T).view(n, B, K).transpose(0, 1)
+        else:
+            outer = self.ar_outer.gather(0, age.unsqueeze(-1).expand(B, n, self.ar_outer.shape[-1]))
+            q_all = outer @ m.transpose(-1, -2)  # (B, n, K)
+        q = w * (q_all * onehot).sum(-1)
         return max(nu + d - 2.0, 1e-3) / (nu + q)
 
     def _state_terms(self, onehot: Tensor, s: Tensor) -> Tensor:
@@ -1681,8 +1692,13 @@ class _Run:
         in_i = torch.arange(N, device=self.device).repeat_interleave(T).unsqueeze(0) == i.unsqueeze(-1)  # (P, N T)
         old_k = (flat.unsqueeze(0) == k.unsqueeze(-1)) & valid
         new_j = ((flat.unsqueeze(0) == j.unsqueeze(-1)) & valid) | (old_k & in_i)
-        pair = torch.stack([old_k & ~in_i, new_j], -1).to(self.dtype)  # (P, N T, 2): states k and j after the move
-        lp = score + self._state_terms(pair, cand_s).sum(-1) - base[k] - base[j]
+        # state k after the move depends on (i, k) alone: its terms once per pair, the labels of the pair's first
+        # move (its remaining samples lie outside sequence i, so their ages are those of every move of the pair)
+        pairs, inverse = torch.unique(i * K + k, return_inverse=True)
+        first = torch.full_like(pairs, P).scatter_reduce_(0, inverse, torch.arange(P, device=self.device), "amin")
+        kept_k = (old_k & ~in_i)[first].unsqueeze(-1).to(self.dtype)  # (U, N T, 1)
+        lp = (score + self._state_terms(kept_k, cand_s[first])[inverse, 0]
+              + self._state_terms(new_j.unsqueeze(-1).to(self.dtype), cand_s)[:, 0] - base[k] - base[j])
         alpha, kappa = (h.view(1, 1, 1, 1) for h in hyper[:2])
         rows = torch.cat([cand_s[torch.arange(P, device=self.device), i], s[i]]).unsqueeze(1)  # (2P, 1, T)
         f_rows = torch.cat([cand_f[torch.arange(P, device=self.device), i],

@@ -43,8 +43,7 @@ def _scaled_emission(log_emission: Tensor, lengths: Tensor) -> tuple[Tensor, Ten
     valid = torch.arange(T, device=log_emission.device).unsqueeze(0) < lengths.unsqueeze(1)  # (B, T)
     m = log_emission.amax(-1)
     m = torch.where(torch.isfinite(m) & valid, m, torch.zeros_like(m))
-    e = torch.exp(log_emission - m.unsqueeze(-1))
-    e = torch.where(valid.unsqueeze(-1), e, torch.ones_like(e))  # padding: neutral
+    e = torch.sub(log_emission, m.unsqueeze(-1)).exp_().masked_fill_(~valid.unsqueeze(-1), 1.0)  # padding: neutral
     return e, m, valid
 
 
