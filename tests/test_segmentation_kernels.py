@@ -218,6 +218,23 @@ def test_forward_likelihood_finite_with_tiny_transition_probabilities():
     assert not torch.isnan(filtered).any()
 
 
+def test_forward_likelihood_exact_through_a_subnormal_step():
+    # a step whose whole mass is subnormal (a switch of probability 1e-310 that the emissions force): the recursion
+    # normalises by the smallest normal number there, and the next step's factor carries the rest, so the log
+    # evidence still equals the log-space reference (about -713.8 nats for that switch)
+    T = 6
+    le = torch.full((2, T, 2), -1000.0, dtype=F64)
+    le[:, :3, 0] = 0.0
+    le[:, 3:, 1] = 0.0
+    P = torch.tensor([[1 - 1e-310, 1e-310], [1e-310, 1 - 1e-310]], dtype=F64).expand(2, 2, 2).contiguous()
+    init = torch.tensor([[1.0, 0.0], [0.5, 0.5]], dtype=F64)
+    lengths = torch.tensor([T, 5])
+    ll = forward_log_likelihood(le, init, P, lengths)
+    assert torch.isfinite(ll).all(), ll
+    torch.testing.assert_close(ll, _log_space_forward(le, init, P, lengths), rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(forward_filter(le, init, P, lengths)[1], ll)
+
+
 def test_segmentation_package_creates_tensors_on_an_explicit_device():
     # every factory call (torch.tensor/zeros/ones/arange/full/eye/empty/rand*/linspace) names its device, so that
     # nothing silently lands on the CPU next to CUDA data (a CPU query of torch.searchsorted once broke CUDA runs)

@@ -17,6 +17,8 @@ time (a doubling scan of inverse-CDF maps).
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -54,28 +56,32 @@ def _forward(
     _check(log_emission, initial, transition, lengths)
     B, T, K = log_emission.shape
     e, m, valid = _scaled_emission(log_emission, lengths)
-    # Normalised at every step (a lazier schedule underflows to 0/0 = NaN when transitions are tiny). A step whose
-    # mass is exactly 0 (no usable state explains the sample, or an underflow of a single step below ~1e-308) has
-    # log normaliser -inf; its vector is left at 0 instead of 0/0, so the log likelihood is -inf, never NaN.
-    alpha = initial * e[:, 0]
-    norm = alpha.sum(-1, keepdim=True)
+    # Normalised at every step (a lazier schedule underflows to 0/0 = NaN when transitions are tiny), by the mass
+    # clamped to the smallest normal number: the recorded factors still multiply to the total mass (a subnormal mass
+    # leaves alpha summing to mass / tiny, which the next factor carries). Once the mass is exactly 0 (no usable
+    # state explains a sample) alpha stays 0 to the end, so the last raw mass tells: log likelihood -inf, never NaN.
+    tiny = torch.finfo(e.dtype).tiny
+    steps = e.unsqueeze(2).unbind(1)  # T views (B, 1, K)
+    alpha = initial.unsqueeze(1) * steps[0]  # (B, 1, K)
+    mass = alpha.sum(-1, keepdim=True)
+    norm = mass.clamp_min(tiny)
     norms = [norm]
-    alpha = alpha / torch.where(norm > 0, norm, torch.ones_like(norm))
+    alpha = alpha / norm
     out = [alpha]
-    one = torch.ones_like(norm)
     for t in range(1, T):
-        alpha = torch.bmm(alpha.unsqueeze(1), transition).squeeze(1).mul_(e[:, t])
-        norm = alpha.sum(-1, keepdim=True)
-        alpha.div_(torch.where(norm > 0, norm, one))
+        alpha = torch.bmm(alpha, transition).mul_(steps[t])
+        mass = alpha.sum(-1, keepdim=True)
+        norm = mass.clamp_min(tiny)
+        alpha.div_(norm)
         norms.append(norm)
         if keep:
             out.append(alpha)
-    log_norm = torch.log(torch.cat(norms, 1))
+    log_norm = torch.log(torch.cat(norms, 1)).view(B, T)
     # padding steps have e = 1 and row-stochastic transitions, so they leave the total mass (and log_norm) unchanged
-    log_lik = log_norm.sum(1) + m.sum(1)
+    log_lik = (log_norm.sum(1) + m.sum(1)).masked_fill_(mass.view(B) == 0, -math.inf)
     if not keep:
         return None, log_lik
-    filtered = torch.stack(out, 1)
+    filtered = torch.cat(out, 1)
     last = (lengths - 1).clamp_min(0)
     index = torch.minimum(torch.arange(T, device=e.device).unsqueeze(0), last.unsqueeze(1))
     return filtered.gather(1, index.unsqueeze(-1).expand(B, T, K)), log_lik
