@@ -660,7 +660,7 @@ class _Run:
         self.ar_start = tuple(a[:1] for a in self.ar_views)
         self.ar_cont = tuple(a[-1:] for a in self.ar_views)  # the Viterbi proposal's view of a later phase
         x = torch.cat([self.ar_views[1], self.ar_views[0]], -1)  # (ages, n, d + p): [u_t, z_t] in every view
-        self.ar_outer = (x.unsqueeze(-1) * x.unsqueeze(-2)).flatten(-2)  # (ages, n, (d + p)^2), :meth:`_profile_scales`
+        self.ar_outer = (x.unsqueeze(-1) * x.unsqueeze(-2)).flatten(-2)  # (ages, n, (d + p)^2): _profile_scales
 
     def _score_view(self, s: Tensor) -> tuple[Tensor | None, Tensor, Tensor]:
         """What the collapsed score's field evidence sees of labellings s (B, N, T): every sample's age in its run
@@ -778,8 +778,8 @@ class _Run:
         when given (a correlated tolerance, module docstring); the last run is completed."""
         D = self.D
         unused = ~features.unsqueeze(-2)
-        le = log_emission.masked_fill(unused, _NEG_INF).repeat_interleave(D, -1)  # one new (B, T, K D) tensor,
-        phases = le.unflatten(-1, (-1, D))  # (B, T, K, D), edited in place below
+        le = log_emission.masked_fill(unused, _NEG_INF).repeat_interleave(D, -1)  # (B, T, K D), a new tensor
+        phases = le.unflatten(-1, (-1, D))  # (B, T, K, D), a view of it, edited in place below
         if first_emission is not None:
             phases[..., 0] = first_emission.masked_fill(unused, _NEG_INF)
         if dwell_ll is not None:
