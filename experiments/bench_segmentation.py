@@ -442,6 +442,9 @@ def main() -> None:
     parser.add_argument("--parts", nargs="+", default=["lasa", "scaling", "synthetic"],
                         choices=["lasa", "scaling", "synthetic", "membership"])  # fmt: skip
     parser.add_argument("--shapes", nargs="+", default=list(LASA_SHAPES))
+    parser.add_argument("--lasa-seed", type=int, default=0,
+                        help="sampler seed of the lasa part (each shape is segmented once, in this process, in order: "
+                             "the first pays the process's one-off costs)")  # fmt: skip
     parser.add_argument("--seeds", type=int, default=10, help="synthetic cases per family and number of demos")
     parser.add_argument("--jobs", type=int, default=1, help="worker processes for the synthetic part (one thread each)")
     parser.add_argument("--method", nargs="+", default=["segment", "ruptures", "hmmlearn"], choices=METHODS,
@@ -470,7 +473,7 @@ def main() -> None:
     torch.set_num_threads(1)
     result: dict[str, Any] = {}
     if "lasa" in args.parts:
-        result["lasa"] = bench_lasa(tuple(args.shapes), **options)
+        result["lasa"] = bench_lasa(tuple(args.shapes), seed=args.lasa_seed, **options)
         _print(result["lasa"])
     if "scaling" in args.parts:
         result["scaling"] = bench_scaling()

@@ -659,8 +659,8 @@ class _Run:
         self.ar_views = tuple(torch.stack([v[i].reshape(n, *v[i].shape[2:]) for v in views]) for i in range(3))
         self.ar_start = tuple(a[:1] for a in self.ar_views)
         self.ar_cont = tuple(a[-1:] for a in self.ar_views)  # the Viterbi proposal's view of a later phase
-        x = torch.cat([self.ar_views[1], self.ar_views[0]], -1)  # (ages, n, d + p): [u_t, z_t] in every view
-        self.ar_outer = (x.unsqueeze(-1) * x.unsqueeze(-2)).flatten(-2)  # (ages, n, (d + p)^2): _profile_scales
+        x = torch.cat([self.ar_start[1], self.ar_start[0]], -1)  # (1, n, d + p): [u_t, z_t] in the first view
+        self.ar_outer = (x.unsqueeze(-1) * x.unsqueeze(-2)).flatten(-2)  # (1, n, (d + p)^2): _profile_scales
 
     def _score_view(self, s: Tensor) -> tuple[Tensor | None, Tensor, Tensor]:
         """What the collapsed score's field evidence sees of labellings s (B, N, T): every sample's age in its run
@@ -1202,21 +1202,24 @@ class _Run:
         nu, d = self.cfg.robust_dof, self.d
         mean, psi = field_mixture_posterior_mean(self.score_prior, *self._stats(age, w, onehot),
                                                  self.cfg.straight_weight)
-        # q_t = (u_t - B z_t)^T P (u_t - B z_t) = x_t^T M x_t with x_t = [u_t, z_t] and M = [[P, -P B], [-B^T P,
-        # B^T P B]] (P = Psi^-1): one GEMM of every sample's outer product x_t x_t^T against every state's M, instead
-        # of a tiny matrix product per sample; each sample then keeps its own state's (padding rows of onehot are 0)
         B, n, K = onehot.shape
         prec = torch.cholesky_inverse(torch.linalg.cholesky(psi))  # (B, K, d, d)
-        pb = prec @ mean
-        m = torch.cat([torch.cat([prec, -pb], -1), torch.cat([-pb.transpose(-1, -2), mean.transpose(-1, -2) @ pb], -1)],
-                      -2).flatten(-2)  # (B, K, (d + p)^2)
-        if age is None:  # one view for all labellings: (n, (d+p)^2) @ ((d+p)^2, B K)
+        if age is None:
+            # one view for all labellings: q_t = (u_t - B z_t)^T P (u_t - B z_t) = x_t^T M x_t with x_t = [u_t, z_t],
+            # M = [[P, -P B], [-B^T P, B^T P B]] (P = Psi^-1), as one GEMM of the samples' outer products x_t x_t^T
+            # against every state's M (n, (d+p)^2) @ ((d+p)^2, B K); each sample keeps its own state's
+            pb = prec @ mean
+            m = torch.cat([torch.cat([prec, -pb], -1), torch.cat([-pb.transpose(-1, -2), mean.transpose(-1, -2) @ pb],
+                                                                  -1)], -2)  # (B, K, d + p, d + p)
             q_all = (self.ar_outer[0] @ m.reshape(B * K, -1).T).view(n, B, K).transpose(0, 1)
-        else:
-            outer = self.ar_outer.gather(0, age.unsqueeze(-1).expand(B, n, self.ar_outer.shape[-1]))
-            q_all = outer @ m.transpose(-1, -2)  # (B, n, K)
-        q = w * (q_all * onehot).sum(-1)
-        return max(nu + d - 2.0, 1e-3) / (nu + q)
+            q = (q_all * onehot).sum(-1)
+        else:  # every labelling its own view: the residual under each sample's own state (padding rows: q = 0)
+            own_field = (onehot @ mean.flatten(-2)).unflatten(-1, mean.shape[-2:])  # (B, n, d, p)
+            own_prec = (onehot @ prec.flatten(-2)).unflatten(-1, (d, d))
+            z, u = self._viewed(age)
+            r = u - (own_field @ z.unsqueeze(-1)).squeeze(-1)  # (B, n, d)
+            q = (r.unsqueeze(-2) @ own_prec @ r.unsqueeze(-1)).reshape(B, n)
+        return max(nu + d - 2.0, 1e-3) / (nu + w * q)
 
     def _state_terms(self, onehot: Tensor, s: Tensor) -> Tensor:
         """(B, K) the per-state terms of :meth:`_collapsed_score` for the labelling ``onehot`` (B, N T, K) (0 on
