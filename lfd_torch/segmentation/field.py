@@ -85,7 +85,6 @@ from lfd_torch.gmm import NIWPrior, inverse_wishart_log_density, log_multigamma,
 from lfd_torch.gmm.gaussian import LOG_2PI
 
 __all__ = ["FieldPrior", "FieldObservations", "field_observations", "field_prior", "field_statistics",
-           "observation_products", "field_statistics_of_products",
            "field_posterior", "field_log_marginal_likelihood", "straight_field_prior", "field_mixture_evidence",
            "field_mixture_posterior_mean", "sample_field", "field_log_density",
            "field_log_likelihood",
@@ -213,24 +212,14 @@ def field_statistics(obs_z: Tensor, obs_u: Tensor, obs_w: Tensor, weights: Tenso
     Returns:
         counts (..., K), Szz (..., K, p, p), Suz (..., K, d, p), Suu (..., K, d, d).
     """
-    p, d = obs_z.shape[-1], obs_u.shape[-1]
-    return field_statistics_of_products(observation_products(obs_z, obs_u), obs_w, weights, p, d)
-
-
-def observation_products(obs_z: Tensor, obs_u: Tensor) -> Tensor:
-    """(..., n, p^2 + d p + d^2) every sample's z z^T, u z^T and u u^T, flattened and side by side: what
-    :func:`field_statistics_of_products` sums (computed once where many labellings weight the same samples)."""
-    outer = [(a.unsqueeze(-1) * b.unsqueeze(-2)).flatten(-2) for a, b in ((obs_z, obs_z), (obs_u, obs_z), (obs_u, obs_u))]
-    return torch.cat(outer, -1)
-
-
-def field_statistics_of_products(products: Tensor, obs_w: Tensor, weights: Tensor, p: int,
-                                 d: int) -> tuple[Tensor, ...]:
-    """:func:`field_statistics` from the samples' :func:`observation_products` (..., n, p^2 + d p + d^2) (regressors
-    of dimension p, directions of dimension d): one matmul of the weights against them."""
+    counts = weights.sum(-2)
     wt = (weights * obs_w.unsqueeze(-1)).transpose(-1, -2)  # (..., K, n)
-    szz, suz, suu = (wt @ products).split([p * p, d * p, d * d], -1)
-    return weights.sum(-2), szz.unflatten(-1, (p, p)), suz.unflatten(-1, (d, p)), suu.unflatten(-1, (d, d))
+
+    def moment(a: Tensor, b: Tensor) -> Tensor:  # sum_t wt_kt a_t b_t^T as one matmul over the flattened outer products
+        outer = (a.unsqueeze(-1) * b.unsqueeze(-2)).flatten(-2)  # (..., n, i j)
+        return (wt @ outer).unflatten(-1, (a.shape[-1], b.shape[-1]))
+
+    return counts, moment(obs_z, obs_z), moment(obs_u, obs_z), moment(obs_u, obs_u)
 
 
 def field_posterior(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor) -> FieldPrior:

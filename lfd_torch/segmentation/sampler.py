@@ -283,8 +283,6 @@ from lfd_torch.segmentation.field import (
     field_posterior,
     field_prior,
     field_statistics,
-    field_statistics_of_products,
-    observation_products,
     sample_field,
 )
 from lfd_torch.segmentation.dwell import (
@@ -663,8 +661,6 @@ class _Run:
         self.ar_cont = tuple(a[-1:] for a in self.ar_views)  # the Viterbi proposal's view of a later phase
         x = torch.cat([self.ar_start[1], self.ar_start[0]], -1)  # (1, n, d + p): [u_t, z_t] in the first view
         self.ar_outer = (x.unsqueeze(-1) * x.unsqueeze(-2)).flatten(-2)  # (1, n, (d + p)^2): _profile_scales
-        # (ages, n, p^2 + d p + d^2) every view's products, gathered by age for the statistics (:meth:`_stats`)
-        self.ar_products = observation_products(self.ar_views[0], self.ar_views[1])
 
     def _score_view(self, s: Tensor) -> tuple[Tensor | None, Tensor, Tensor]:
         """What the collapsed score's field evidence sees of labellings s (B, N, T): every sample's age in its run
@@ -692,11 +688,7 @@ class _Run:
     def _stats(self, age: Tensor | None, w: Tensor, onehot: Tensor) -> tuple[Tensor, ...]:
         """Field statistics (:func:`field_statistics`) of labellings onehot (B, n, K) with weights w (B, n), each
         sample in the view of its age (B, n) (None: the white view)."""
-        if age is None:
-            return field_statistics(*self._viewed(age), w, onehot)
-        n = age.shape[-1]  # rows of the flattened views: row a n + t is sample t seen at age a
-        products = self.ar_products.flatten(0, 1)[age * n + torch.arange(n, device=self.device)]
-        return field_statistics_of_products(products, w, onehot, self.ar_views[0].shape[-1], self.d)
+        return field_statistics(*self._viewed(age), w, onehot)
 
     def _rand(self, *shape: int) -> Tensor:
         return torch.rand(*shape, generator=self.gen, dtype=self.dtype, device=self.device)
