@@ -660,7 +660,7 @@ class _Run:
         self.ar_start = tuple(a[:1] for a in self.ar_views)
         self.ar_cont = tuple(a[-1:] for a in self.ar_views)  # the Viterbi proposal's view of a later phase
         x = torch.cat([self.ar_start[1], self.ar_start[0]], -1)  # (1, n, d + p): [u_t, z_t] in the first view
-        self.ar_outer = (x.unsqueeze(-1) * x.unsqueeze(-2)).flatten(-2)  # (1, n, (d + p)^2): _profile_scales
+        self.white_outer = (x.unsqueeze(-1) * x.unsqueeze(-2)).flatten(-2)  # (1, n, (d + p)^2), _profile_scales
 
     def _score_view(self, s: Tensor) -> tuple[Tensor | None, Tensor, Tensor]:
         """What the collapsed score's field evidence sees of labellings s (B, N, T): every sample's age in its run
@@ -1211,7 +1211,7 @@ class _Run:
             pb = prec @ mean
             m = torch.cat([torch.cat([prec, -pb], -1), torch.cat([-pb.transpose(-1, -2), mean.transpose(-1, -2) @ pb],
                                                                   -1)], -2)  # (B, K, d + p, d + p)
-            q_all = (self.ar_outer[0] @ m.reshape(B * K, -1).T).view(n, B, K).transpose(0, 1)
+            q_all = (self.white_outer[0] @ m.reshape(B * K, -1).T).view(n, B, K).transpose(0, 1)
             q = (q_all * onehot).sum(-1)
         else:  # every labelling its own view: the residual under each sample's own state (padding rows: q = 0)
             own_field = (onehot @ mean.flatten(-2)).unflatten(-1, mean.shape[-2:])  # (B, n, d, p)
