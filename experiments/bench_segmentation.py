@@ -56,6 +56,16 @@ ratio, timing and noise), a path with more corners than the benchmark's:
     OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts synthetic --method segment \
         --families straight_dwell_2d straight_const_2d curved_dwell_2d curved_const_2d --n-steps 7 --jobs 2
 
+``--families rounded_const_2d rounded_const_3d rounded_vary_2d rounded_vary_3d`` runs the held-out families
+(:data:`lfd_torch.segmentation.synthetic.HELD_OUT_FAMILIES`, :func:`~lfd_torch.segmentation.synthetic.rounded_steps`):
+corners rounded by circular arcs (the switch at the arc's midpoint) and a speed that varies along the whole
+demonstration regardless of the corners, drawn by a generator that shares no rendering code with the families and
+was added after every default was set:
+
+    OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts synthetic --jobs 2 \
+        --families rounded_const_2d rounded_const_3d rounded_vary_2d rounded_vary_3d \
+        --json results/tables/bench_segmentation_held_out.json
+
 ``--rate HZ`` records every case at HZ instead of 100 Hz (:func:`lfd_torch.segmentation.synthetic.with_sampling_rate`:
 the same motions and durations, new white noise of the same level per sample), a sensor slower or faster than the
 one the families were drawn for: at 10 Hz a demonstration has 35-120 samples, at 500 Hz 1746-5971. The baselines
@@ -85,7 +95,13 @@ import torch
 
 from lfd_torch.data import load_lasa
 from lfd_torch.segmentation import segment
-from lfd_torch.segmentation.synthetic import FAMILIES, SyntheticSteps, with_correlated_noise, with_sampling_rate
+from lfd_torch.segmentation.synthetic import (
+    FAMILIES,
+    HELD_OUT_FAMILIES,
+    SyntheticSteps,
+    with_correlated_noise,
+    with_sampling_rate,
+)
 
 LASA_SHAPES = ("Multi_Models_1", "Multi_Models_2", "Multi_Models_3", "Multi_Models_4", "Angle", "Sshape")
 METHODS = ("segment", "segment_joint", "segment_collapsed", "segment_modal", "segment_map", "ruptures", "ruptures_l2",
@@ -94,6 +110,7 @@ TOLERANCE = 0.03  # a switch is found when a detected one lies within 3 % of the
 SAVGOL_WINDOW = 25  # samples (0.25 s at dt = 0.01 s)
 PENALTY_C = 1.0  # PELT penalty = PENALTY_C * log(T) * n_features
 HMM_STATES = range(1, 9)
+ALL_FAMILIES = {**FAMILIES, **HELD_OUT_FAMILIES}
 
 
 def _timed(demos, seed: int, **kw: Any) -> tuple[float, Any]:
@@ -154,7 +171,7 @@ def bench_membership(seeds: int, families: tuple[str, ...], n_demos: tuple[int, 
     sets: list[tuple[str, int, int, Any]] = [(shape, 7, 0, None) for shape in shapes]
     sets += [(f, n, seed, None) for f in families for n in n_demos for seed in range(seeds)]
     for name, n, seed, _ in sets:
-        demos = load_lasa(name) if name in shapes else FAMILIES[name](
+        demos = load_lasa(name) if name in shapes else ALL_FAMILIES[name](
             torch.Generator().manual_seed(data_seed(name, seed)), n).demos
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", SegmentationWarning)
@@ -334,7 +351,7 @@ def _synthetic_case(task: tuple[str, int, int, tuple[str, ...], float | None, in
     family, n, seed, methods, rho, n_steps, rate = task
     torch.set_num_threads(1)
     overrides = {} if n_steps is None else {"n_steps": n_steps}
-    syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n, **overrides)
+    syn = ALL_FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n, **overrides)
     if rate is not None:
         syn = with_sampling_rate(syn, rate, torch.Generator().manual_seed(data_seed(family, seed) + 2))
     if rho is not None:
@@ -449,7 +466,8 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=1, help="worker processes for the synthetic part (one thread each)")
     parser.add_argument("--method", nargs="+", default=["segment", "ruptures", "hmmlearn"], choices=METHODS,
                         help="methods of the synthetic part")  # fmt: skip
-    parser.add_argument("--families", nargs="+", default=list(FAMILIES), choices=list(FAMILIES))
+    parser.add_argument("--families", nargs="+", default=list(FAMILIES), choices=list(ALL_FAMILIES),
+                        help="synthetic part: families of FAMILIES (the default, all of them) or HELD_OUT_FAMILIES")
     parser.add_argument("--n-demos", nargs="+", type=int, default=[1, 4])
     parser.add_argument("--noise-correlation", type=float, default=None, metavar="RHO",
                         help="synthetic part: AR(1) position noise of this lag-one correlation (same level) instead "

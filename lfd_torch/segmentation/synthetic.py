@@ -73,7 +73,9 @@ __all__ = [
     "scoop_steps",
     "with_correlated_noise",
     "with_sampling_rate",
+    "rounded_steps",
     "FAMILIES",
+    "HELD_OUT_FAMILIES",
 ]
 
 PROFILES = ("min_jerk", "constant")
@@ -710,6 +712,152 @@ def with_sampling_rate(syn: SyntheticSteps, rate: float, generator: torch.Genera
     return replace(syn, demos=demos, clean=padded, switch_times=switch_times)
 
 
+def _speed_to_arc(n: int, total: float, wave: tuple[float, float, float] | None, dtype: torch.dtype,
+                  device: torch.device) -> Tensor:
+    """(n,) arc length at n equally spaced instants for a speed v(tau) = 1 + a sin(2 pi c tau + phase) over the
+    normalised time tau in [0, 1] (``wave`` = (a, c, phase); None: constant speed), scaled to end at ``total``."""
+    tau = torch.linspace(0.0, 1.0, n, dtype=dtype, device=device)
+    if wave is None:
+        return total * tau
+    a, c, phase = wave
+    # closed-form integral of the speed; a < 1 keeps it increasing
+    arc = tau - a / (2.0 * math.pi * c) * (torch.cos(2.0 * math.pi * c * tau + phase) - math.cos(phase))
+    return total * arc / arc[-1]
+
+
+def _filleted_path(corners: Tensor, fractions: list[float]) -> tuple[Tensor, Tensor, Tensor]:
+    """Pieces of the polyline through ``corners`` (M + 1, d) with inner corner m + 1 rounded by the circular arc
+    tangent to both legs at distance f_m min(L_m, L_m+1) from the corner (``fractions``, M - 1 values < 0.5).
+
+    The arc from A = c - t u (tangent u) turning by theta towards u' is p(phi) = A + R sin(phi) u + R (1 - cos phi) n,
+    n the unit normal of u towards u', R = t / tan(theta / 2), phi in [0, theta]; it leaves at c + t u'.
+
+    Returns:
+        pieces (P, 3, d): start point, unit tangent u, unit normal n of each piece (n = 0 on a straight piece);
+        radii (P,) (0: straight piece); bounds (P + 1,) arc length at the start of each piece, then the total.
+    """
+    M = corners.shape[0] - 1
+    d = corners[1:] - corners[:-1]
+    lengths = d.norm(dim=-1)
+    u = d / lengths.unsqueeze(-1)
+    t = [0.0] + [fractions[m] * float(min(lengths[m], lengths[m + 1])) for m in range(M - 1)] + [0.0]
+    starts, tangents, normals, radii, sizes = [], [], [], [], []
+    zero = torch.zeros_like(corners[0])
+    for m in range(M):
+        starts.append(corners[m] + t[m] * u[m])
+        tangents.append(u[m])
+        normals.append(zero)
+        radii.append(0.0)
+        sizes.append(float(lengths[m]) - t[m] - t[m + 1])
+        if m < M - 1 and t[m + 1] > 0.0:
+            cos_theta = float((u[m] @ u[m + 1]).clamp(-1.0, 1.0))
+            theta = math.acos(cos_theta)
+            n = u[m + 1] - cos_theta * u[m]
+            radius = t[m + 1] / math.tan(0.5 * theta)
+            starts.append(corners[m + 1] - t[m + 1] * u[m])
+            tangents.append(u[m])
+            normals.append(n / n.norm())
+            radii.append(radius)
+            sizes.append(radius * theta)
+    bounds = torch.tensor([0.0] + sizes, dtype=corners.dtype, device=corners.device).cumsum(0)
+    return (torch.stack([torch.stack(starts), torch.stack(tangents), torch.stack(normals)], 1),
+            torch.tensor(radii, dtype=corners.dtype, device=corners.device), bounds)
+
+
+def _points_on(pieces: Tensor, radii: Tensor, bounds: Tensor, s: Tensor) -> Tensor:
+    """(n, d) points at arc lengths ``s`` (n,) of the path of :func:`_filleted_path`."""
+    j = (torch.searchsorted(bounds, s, right=True) - 1).clamp(0, radii.shape[0] - 1)
+    ds = (s - bounds[j]).unsqueeze(-1)
+    r = radii[j].unsqueeze(-1)
+    arc = r > 0
+    phi = ds / torch.where(arc, r, torch.ones_like(r))
+    along = torch.where(arc, r * torch.sin(phi), ds)
+    across = torch.where(arc, r * (1.0 - torch.cos(phi)), torch.zeros_like(ds))
+    return pieces[j, 0] + along * pieces[j, 1] + across * pieces[j, 2]
+
+
+def rounded_steps(
+    generator: torch.Generator,
+    *,
+    n_demos: int = 4,
+    dim: int = 2,
+    n_steps: int | None = None,
+    profile: str = "varying",
+    turn_deg: tuple[float, float] = (30.0, 150.0),
+    fillet: tuple[float, float] = (0.05, 0.25),
+    length_ratio: float = 5.0,
+    noise_fraction: float | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> SyntheticSteps:
+    """Straight legs whose corners are rounded by circular fillets, traversed at a speed unrelated to the corners.
+
+    A generator of its own (not :func:`_render`): the path is arc-length parametrised and the timing is one speed
+    profile over the whole demonstration, so neither the corners' sharpness nor a slow-down marks a switch.
+    Corner m is replaced by the arc tangent to both legs at f_m times the shorter adjacent leg from the corner, f_m
+    uniform in ``fillet`` per corner (the arc turns the tangent by the whole corner angle over 2 f_m of that leg, up
+    to half of it); the true switch is the first sample at or past the arc's midpoint, where the tangent has turned
+    by half the angle. Timing: ``"constant"`` speed, or ``"varying"``: v(tau) = 1 + a sin(2 pi c tau + phase) over the
+    normalised time, a in [0.3, 0.6] and c in [1, 3] cycles per demonstration drawn per case, the phase per
+    demonstration (the slow-downs of different demonstrations fall at different places, at corners or mid-leg).
+    Length: n_nom S / L_g samples (S the path length, L_g the legs' geometric mean length, n_nom in [130, 170] per
+    case, scaled per demonstration by [0.85, 1.15]); corner jitter and noise as :func:`polyline_steps`.
+
+    Returns:
+        SyntheticSteps with ``clean``, ``corner_angles`` (B, M - 1) and ``leg_lengths`` (M,) (the polyline's legs).
+    """
+    if profile not in ("constant", "varying"):
+        raise ValueError(f"profile must be 'constant' or 'varying', got {profile!r}")
+    if dim < 2 or n_demos < 1:
+        raise ValueError(f"need dim >= 2 and n_demos >= 1, got {dim}, {n_demos}")
+    if not 0.0 <= fillet[0] <= fillet[1] < 0.5:
+        raise ValueError(f"fillet must be a range within [0, 0.5), got {fillet}")
+    device = generator.device
+    M = _randint(generator, 3, 5) if n_steps is None else n_steps
+    if M < 1:
+        raise ValueError(f"need n_steps >= 1, got {M}")
+    lengths = _log_uniform_lengths(generator, M, length_ratio)
+    turns = [_rand(generator, *turn_deg) for _ in range(M - 1)]
+    corners, normals, bends = _heading_path(generator, dim, lengths, turns, [0.0] * M, dtype)
+    fractions = [_rand(generator, *fillet) for _ in range(M - 1)]
+    geo_mean = math.exp(sum(math.log(v) for v in lengths) / M)
+    n_nom = _rand(generator, 130.0, 170.0)
+    amplitude, cycles = _rand(generator, 0.3, 0.6), _rand(generator, 1.0, 3.0)
+    if noise_fraction is None:
+        noise_fraction = _rand(generator, 0.003, 0.01)
+    local = [lengths[0]] + [min(lengths[m - 1], lengths[m]) for m in range(1, M)] + [0.0]
+    local_t = torch.tensor(local, dtype=dtype, device=device).unsqueeze(-1)
+    cleans, switches, angles = [], [], []
+    for _ in range(n_demos):
+        c = corners + 0.02 * local_t * torch.randn(corners.shape, generator=generator, dtype=dtype, device=device)
+        pieces, radii, bounds = _filleted_path(c, fractions)
+        n = max(20 * M, int(round(n_nom * sum(lengths) / geo_mean * _rand(generator, 0.85, 1.15))))
+        wave = None if profile == "constant" else (amplitude, cycles, _rand(generator, 0.0, 2.0 * math.pi))
+        s = _speed_to_arc(n, float(bounds[-1]), wave, dtype, device)
+        cleans.append(_points_on(pieces, radii, bounds, s))
+        # the switch: the arc's midpoint (the corner itself for a zero fillet)
+        mids, k = [], 0
+        for p in range(radii.shape[0]):
+            if float(radii[p]) > 0:
+                mids.append(0.5 * float(bounds[p] + bounds[p + 1]))
+            elif p > 0 and float(radii[p - 1]) == 0:
+                mids.append(float(bounds[p]))
+        switches.append([int(torch.searchsorted(s, torch.tensor(v, dtype=dtype, device=device))) for v in mids])
+        angles.append(_corner_angles(c, normals, bends))
+    every = torch.cat(cleans)
+    span = float((every.amax(0) - every.amin(0)).norm())
+    noise = noise_fraction * span
+    noisy = [p + noise * torch.randn(p.shape, generator=generator, dtype=dtype, device=device) for p in cleans]
+    demos = Demos.from_sequences(noisy, dt=DT, attractor=corners[-1], dtype=dtype, device=device)
+    T = demos.max_length
+    clean = torch.stack([torch.cat([p, p[-1:].expand(T - p.shape[0], -1)]) for p in cleans])
+    return SyntheticSteps(
+        demos=demos, waypoints=corners, profile=profile, clean=clean, noise=noise, span=span,
+        switch_times=torch.tensor(switches, dtype=torch.long, device=device).reshape(n_demos, M - 1),
+        corner_angles=torch.tensor(angles, dtype=dtype, device=device).reshape(n_demos, M - 1),
+        leg_lengths=torch.tensor(lengths, dtype=dtype, device=device),
+    )  # fmt: skip
+
+
 FamilyDraw = Callable[..., SyntheticSteps]  # draw(generator, n_demos, **overrides of the generator's keywords)
 
 
@@ -739,8 +887,23 @@ def _build_families() -> dict[str, FamilyDraw]:
     return out
 
 
+def _build_held_out() -> dict[str, FamilyDraw]:
+    out = {}
+    for timing, profile in (("const", "constant"), ("vary", "varying")):
+        for dim in (2, 3):
+            name = f"rounded_{timing}_{dim}d"
+            out[name] = _family(rounded_steps, profile, dim, name)
+    return out
+
+
 #: Family name -> ``draw(generator, n_demos, **overrides)`` drawing a random instance (angles, lengths, timing, noise;
 #: ``overrides`` fix keywords of the family's generator, e.g. ``n_steps=7`` for the straight and curved ones): the
 #: name is ``{shape}_{dwell|const}_{2d|3d}``, "dwell" meaning the min-jerk profile, "const" constant speed.
 #: The nominal path is drawn before the demonstrations, so one seed gives the same path for any ``n_demos``.
 FAMILIES: dict[str, FamilyDraw] = _build_families()
+
+#: Families drawn by :func:`rounded_steps` (rounded corners, speed unrelated to the corners), added after every
+#: default of :func:`lfd_torch.segmentation.segment` was set and used to choose none: a check of the segmentation on
+#: paths and timings it was not tuned on, kept apart from :data:`FAMILIES` (whose 280 cases the stored tables count).
+#: Names ``rounded_{const|vary}_{2d|3d}``.
+HELD_OUT_FAMILIES: dict[str, FamilyDraw] = _build_held_out()
