@@ -9,6 +9,7 @@ import torch
 
 from lfd_torch.segmentation.synthetic import (
     FAMILIES,
+    HELD_OUT_FAMILIES,
     curved_steps,
     multi_step_demos,
     out_and_back_steps,
@@ -169,3 +170,56 @@ def test_generator_device_and_no_global_rng():
 def test_legacy_generator_unchanged():
     syn = multi_step_demos(torch.Generator().manual_seed(3), n_demos=3, n_steps=3, samples_per_step=30)
     assert syn.clean is None and syn.family == "" and syn.switch_times.shape == (3, 2)
+
+
+HELD_OUT = sorted(HELD_OUT_FAMILIES)
+
+
+def test_held_out_registry_is_apart_from_the_families():
+    assert HELD_OUT == ["rounded_const_2d", "rounded_const_3d", "rounded_vary_2d", "rounded_vary_3d"]
+    assert not set(HELD_OUT) & set(FAMILIES)
+
+
+@pytest.mark.parametrize("name", HELD_OUT)
+def test_rounded_family_deterministic_and_well_formed(name):
+    draw_ = HELD_OUT_FAMILIES[name]
+    a, b = draw_(torch.Generator().manual_seed(5), 4), draw_(torch.Generator().manual_seed(5), 4)
+    assert torch.equal(a.demos.positions, b.demos.positions) and torch.equal(a.switch_times, b.switch_times)
+    B, T, d = a.demos.positions.shape
+    M = a.n_steps
+    assert (B, d) == (4, int(name[-2])) and a.family == name and a.switch_times.shape == (B, M - 1)
+    L = a.demos.lengths.unsqueeze(1)
+    bounds = torch.cat([torch.zeros(B, 1, dtype=torch.long), a.switch_times, L], 1)
+    assert (bounds.diff(dim=1) >= 10).all()
+    assert 0.003 <= a.noise / a.span <= 0.01
+    for i in range(B):
+        assert torch.allclose(a.clean[i, int(L[i]) - 1], a.waypoints[-1])
+
+
+@pytest.mark.parametrize("name", HELD_OUT)
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_rounded_switch_is_the_arc_midpoint(name, seed):
+    """The path is C1 (no sample carries a corner's turn); at a switch the direction has turned half the corner
+    angle: it bisects the directions of the two (straight) leg middles. Constant timing keeps the speed constant;
+    varying timing changes it by the drawn factor wherever it falls."""
+    syn = HELD_OUT_FAMILIES[name](torch.Generator().manual_seed(seed), 3)
+    for i in range(syn.demos.n_demos):
+        n = int(syn.demos.lengths[i])
+        p = syn.clean[i, :n]
+        step = p.diff(dim=0)
+        turn = turn_deg(step[:-1], step[1:])
+        sw = syn.switch_times[i]
+        assert float(turn.max()) < 0.4 * float(syn.corner_angles[i].min())
+        bounds = torch.cat([torch.tensor([0]), sw, torch.tensor([n - 1])])
+        middle = step[(bounds[:-1] + bounds[1:]) // 2]  # direction in the middle of each leg
+        # the midpoint lies on the chord from sample sw - 1 to sw, whose direction is within one sample's turn of it
+        chord = step[sw - 1]
+        before, after = turn_deg(chord, middle[:-1]), turn_deg(chord, middle[1:])
+        assert torch.allclose(before + after, syn.corner_angles[i], atol=1.0)
+        assert float((before - after).abs().max()) <= 2.0 * float(turn.max()) + 0.5, (before, after)
+        speed = step.norm(dim=1)
+        ratio = float(speed.max() / speed.min())
+        if syn.profile == "constant":
+            assert ratio < 1.01  # chords of the arcs are a little shorter than their arc length
+        else:
+            assert 1.8 < ratio < 4.1  # (1 + a) / (1 - a), a in [0.3, 0.6] (where the wave peaks inside the demo)
