@@ -407,6 +407,17 @@ def _render(
         cleans.append(torch.cat(pieces))
         switches.append(switch)
         angles.append(_corner_angles(c, normals, bends))
+    return _noisy_steps(generator, cleans, switches, angles, corners, lengths, profile, noise_fraction, family)
+
+
+def _noisy_steps(
+    generator: torch.Generator, cleans: list[Tensor], switches: list[list[int]], angles: list[list[float]],
+    corners: Tensor, lengths: list[float], profile: str, noise_fraction: float, family: str = "",
+) -> SyntheticSteps:
+    """SyntheticSteps of the noise-free demonstrations ``cleans`` (B tensors (T_i, d)) with white noise of
+    ``noise_fraction`` of their span added (drawn in order, after every path), their switches and corner angles."""
+    dtype, device = corners.dtype, corners.device
+    B, M = len(cleans), len(lengths)
     every = torch.cat(cleans)
     span = float((every.amax(0) - every.amin(0)).norm())
     noise = noise_fraction * span
@@ -417,10 +428,10 @@ def _render(
     return SyntheticSteps(
         demos=demos,
         waypoints=corners,
-        switch_times=torch.tensor(switches, dtype=torch.long, device=device).reshape(n_demos, M - 1),
+        switch_times=torch.tensor(switches, dtype=torch.long, device=device).reshape(B, M - 1),
         profile=profile,
         clean=clean,
-        corner_angles=torch.tensor(angles, dtype=dtype, device=device).reshape(n_demos, M - 1),
+        corner_angles=torch.tensor(angles, dtype=dtype, device=device).reshape(B, M - 1),
         leg_lengths=torch.tensor(lengths, dtype=dtype, device=device),
         noise=noise,
         span=span,
@@ -843,19 +854,7 @@ def rounded_steps(
                 mids.append(float(bounds[p]))
         switches.append([int(torch.searchsorted(s, torch.tensor(v, dtype=dtype, device=device))) for v in mids])
         angles.append(_corner_angles(c, normals, bends))
-    every = torch.cat(cleans)
-    span = float((every.amax(0) - every.amin(0)).norm())
-    noise = noise_fraction * span
-    noisy = [p + noise * torch.randn(p.shape, generator=generator, dtype=dtype, device=device) for p in cleans]
-    demos = Demos.from_sequences(noisy, dt=DT, attractor=corners[-1], dtype=dtype, device=device)
-    T = demos.max_length
-    clean = torch.stack([torch.cat([p, p[-1:].expand(T - p.shape[0], -1)]) for p in cleans])
-    return SyntheticSteps(
-        demos=demos, waypoints=corners, profile=profile, clean=clean, noise=noise, span=span,
-        switch_times=torch.tensor(switches, dtype=torch.long, device=device).reshape(n_demos, M - 1),
-        corner_angles=torch.tensor(angles, dtype=dtype, device=device).reshape(n_demos, M - 1),
-        leg_lengths=torch.tensor(lengths, dtype=dtype, device=device),
-    )  # fmt: skip
+    return _noisy_steps(generator, cleans, switches, angles, corners, lengths, profile, noise_fraction)
 
 
 FamilyDraw = Callable[..., SyntheticSteps]  # draw(generator, n_demos, **overrides of the generator's keywords)
