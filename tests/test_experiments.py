@@ -237,6 +237,18 @@ def test_correlated_noise_cases_share_the_paths_of_the_white_ones():
     assert white[0]["noise_fraction"] == ar1[0]["noise_fraction"]
 
 
+def test_held_out_families_run_through_the_synthetic_study():
+    """``--families`` takes the held-out families (``HELD_OUT_FAMILIES``): their rows carry the rounded generator's
+    truth (the drawn switches), and the default family list stays the 14 benchmark families."""
+    import bench_segmentation as bench
+    from lfd_torch.segmentation.synthetic import FAMILIES, HELD_OUT_FAMILIES
+
+    rows = bench.synthetic_study(seeds=1, methods=("ruptures",), families=("rounded_vary_2d",), n_demos=(2,))
+    syn = HELD_OUT_FAMILIES["rounded_vary_2d"](torch.Generator().manual_seed(bench.data_seed("rounded_vary_2d", 0)), 2)
+    assert rows[0]["family"] == "rounded_vary_2d" and rows[0]["true_switches"] == syn.switch_times.tolist()
+    assert set(bench.ALL_FAMILIES) == set(FAMILIES) | set(HELD_OUT_FAMILIES) and len(FAMILIES) == 14
+
+
 def test_seed_stable_is_the_issue_7_rule():
     """``seed_stable``: every demonstration's most common step count must occur on >= 90 % of the seeds (9 of 10);
     one demonstration at 8 of 10 makes the case unstable, whatever the others do."""
