@@ -95,11 +95,14 @@ __all__ = [
     "dwell_log_likelihood",
     "dwell_log_prob",
     "posterior_summary",
+    "PACE_RATIOS",
 ]
 
 _SLOPE_VARIANCE = 100.0  # (mu, delta) | sigma^2 ~ N(0, sigma^2 * this * I)
 _NOISE_DOF = 3.0  # nu0 of sigma^2 ~ IW(nu0, S0) (d = 1: an inverse gamma)
 _NOISE_MEAN = 0.1  # E[sigma^2] = S0 / (nu0 - 2)
+#: g = (spread of the runs' pace levels / sigma)^2, uniform prior over these values ("Pace of a run")
+PACE_RATIOS = (0.0, 1.0, 4.0, 16.0, 64.0)
 
 
 def dwell_covariate(times: Tensor, grid: Tensor, levels: Tensor | None = None) -> Tensor:
@@ -147,11 +150,13 @@ def dwell_regressors(phase: Tensor, mask: Tensor, dtype: torch.dtype = torch.flo
     return torch.stack([torch.ones_like(b), b], -1)
 
 
-def _statistics(c: Tensor, mask: Tensor, phase: Tensor) -> tuple[Tensor, ...]:
+def _statistics(c: Tensor, mask: Tensor, phase: Tensor, ratio: float = 0.0) -> tuple[Tensor, ...]:
     """MNIW statistics (counts, Szz, Suz, Suu) of shape (B, 1, ...) of the labellings' phases (B, N, T): those of
     :func:`~lfd_torch.segmentation.field.field_statistics` for the regressors [1, b_t] over the mask, in closed
     form (b_t is 0 or 1, so b_t^2 = b_t and only sum b_t and sum b_t c_t depend on the labelling; the map search
-    scores hundreds of labellings at once)."""
+    scores hundreds of labellings at once). With a pace ratio g > 0 (module docstring, "Pace of a run") they are
+    the generalised least-squares statistics X^T Omega^-1 X, Omega = blockdiag_r(I + g 1 1^T) over the runs r:
+    per run, sum_t x_t y_t - g / (1 + g n_r) (sum_t x_t)(sum_t y_t)."""
     B = phase.shape[0]
     m = mask.to(c.dtype)
     cm = (c * m).reshape(-1, mask.numel())  # (1 or B, N T)
@@ -161,9 +166,32 @@ def _statistics(c: Tensor, mask: Tensor, phase: Tensor) -> tuple[Tensor, ...]:
     s_c = cm.sum(-1).expand(B)
     s_cb = (cm * b).sum(-1)
     s_cc = (cm * c.reshape(-1, mask.numel())).sum(-1).expand(B)
-    szz = torch.stack([torch.stack([n, n_b], -1), torch.stack([n_b, n_b], -1)], -2)  # (B, 2, 2)
+    s_11, s_1b, s_bb = n, n_b, n_b
+    if ratio > 0.0:
+        n_r, b_r, c_r = (_per_run(x, phase) for x in (m.reshape(1, -1), b, cm))
+        f = ratio / (1.0 + ratio * n_r)
+        s_11 = s_11 - (f * n_r * n_r).sum(-1)
+        s_1b = s_1b - (f * n_r * b_r).sum(-1)
+        s_bb = s_bb - (f * b_r * b_r).sum(-1)
+        s_c = s_c - (f * c_r * n_r).sum(-1)
+        s_cb = s_cb - (f * c_r * b_r).sum(-1)
+        s_cc = s_cc - (f * c_r * c_r).sum(-1)
+    szz = torch.stack([torch.stack([s_11, s_1b], -1), torch.stack([s_1b, s_bb], -1)], -2)  # (B, 2, 2)
     suz = torch.stack([s_c, s_cb], -1).unsqueeze(-2)  # (B, 1, 2)
     return n.unsqueeze(-1), szz.unsqueeze(1), suz.unsqueeze(1), s_cc.view(B, 1, 1, 1)
+
+
+def _per_run(x: Tensor, phase: Tensor) -> Tensor:
+    """(B, N T + 1) sums of x (1 or B, N T) over the runs of the phases (B, N, T): run r of sequence i holds the
+    points from one run start (phase 0, in the mask or not) to the next; slots that hold no run are 0."""
+    B, N, T = phase.shape
+    run = (phase == 0).long().cumsum(-1) + T * torch.arange(N, device=phase.device).unsqueeze(-1)  # 1 + i T ..
+    return x.new_zeros(B, N * T + 1).scatter_add_(-1, run.reshape(B, -1), x.expand(B, -1))
+
+
+def _run_log_det(mask: Tensor, phase: Tensor, ratio: float, dtype: torch.dtype) -> Tensor:
+    """(B,) log |Omega| = sum_r log(1 + g n_r), n_r the points of run r in the mask (:func:`_statistics`)."""
+    return torch.log1p(ratio * _per_run(mask.to(dtype).reshape(1, -1), phase)).sum(-1)
 
 
 def dwell_posterior(prior: FieldPrior, c: Tensor, mask: Tensor, phase: Tensor) -> FieldPrior:
@@ -171,9 +199,22 @@ def dwell_posterior(prior: FieldPrior, c: Tensor, mask: Tensor, phase: Tensor) -
     return field_posterior(prior, *_statistics(c, mask, phase))
 
 
-def dwell_evidence(prior: FieldPrior, c: Tensor, mask: Tensor, phase: Tensor) -> Tensor:
-    """(B,) log p(c | b) with (mu, delta, sigma^2) integrated out, for the phases (B, N, T) of B labellings."""
-    return field_log_marginal_likelihood(prior, *_statistics(c, mask, phase))[..., 0]
+def dwell_evidence(prior: FieldPrior, c: Tensor, mask: Tensor, phase: Tensor,
+                   pace_ratios: tuple[float, ...] = (0.0,)) -> Tensor:
+    """(B,) log p(c | b) with (mu, delta, sigma^2) integrated out, for the phases (B, N, T) of B labellings.
+
+    ``pace_ratios``: the values of g = (spread of the runs' pace levels / sigma)^2 under a uniform prior, integrated
+    out too (module docstring, "Pace of a run"); (0,): no level per run (:data:`PACE_RATIOS` for the default grid).
+    """
+    out = []
+    for g in pace_ratios:
+        ev = field_log_marginal_likelihood(prior, *_statistics(c, mask, phase, float(g)))[..., 0]
+        if g > 0.0:
+            ev = ev - 0.5 * _run_log_det(mask, phase, float(g), ev.dtype)
+        out.append(ev)
+    if len(out) == 1:
+        return out[0]
+    return torch.logsumexp(torch.stack(out), 0) - math.log(len(out))
 
 
 def dwell_log_likelihood(c: Tensor, mask: Tensor, beta: Tensor, noise: Tensor) -> Tensor:

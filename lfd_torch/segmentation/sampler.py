@@ -286,6 +286,7 @@ from lfd_torch.segmentation.field import (
     sample_field,
 )
 from lfd_torch.segmentation.dwell import (
+    PACE_RATIOS,
     dwell_evidence,
     dwell_log_likelihood,
     dwell_log_prob,
@@ -401,14 +402,14 @@ SELECTIONS = ("joint", "collapsed", "modal", "map")
 
 def check_hyperparameters(**values: object) -> None:
     """Raise InvalidArgumentError naming the first hyperparameter outside :data:`HYPERPARAMETER_RANGES` (booleans
-    ``resample_hyperparameters``, ``position_mixture`` and ``progress`` must be bool; ``robust_dof``,
+    ``resample_hyperparameters``, ``position_mixture``, ``dwell_pace`` and ``progress`` must be bool; ``robust_dof``,
     ``position_weight`` and ``tolerance_correlation`` may be None; ``selection`` is one of :data:`SELECTIONS`)."""
     for name, value in values.items():
         if name == "selection":
             if value not in SELECTIONS:
                 raise InvalidArgumentError(f"selection must be one of {SELECTIONS}, got {value!r}")
             continue
-        if name in ("resample_hyperparameters", "progress", "position_mixture"):
+        if name in ("resample_hyperparameters", "progress", "position_mixture", "dwell_pace"):
             if not isinstance(value, bool):
                 raise InvalidArgumentError(f"{name} must be a bool, got {value!r}")
             continue
@@ -450,6 +451,8 @@ class BetaProcessHMMSampler:
         tolerance_correlation: rho in [0, 1), the correlation of consecutive deviations of a direction from its
             state's field in the collapsed score (module docstring, "Correlated tolerance"); 0: white (independent)
             deviations; None: chosen with the labelling among :data:`TOLERANCES` (``selection="map"``).
+        dwell_pace: with the dwell term, the collapsed score also gives every run its own pace level
+            (:mod:`.dwell`, "Pace of a run"; the chains' moves keep the run-free dwell term).
         n_chains: independent chains C (run batched).
         n_iterations: sweeps per chain.
         burn_in: fraction of the sweeps discarded before the best sample is searched.
@@ -480,6 +483,7 @@ class BetaProcessHMMSampler:
         position_mixture: bool = False,
         straight_weight: float = 0.0,
         tolerance_correlation: float | None = 0.0,
+        dwell_pace: bool = False,
         n_chains: int = 4,
         n_iterations: int = 100,
         burn_in: float = 0.5,
@@ -495,7 +499,7 @@ class BetaProcessHMMSampler:
             transition_concentration=transition_concentration, stickiness=stickiness,
             direction_noise=direction_noise, extra_dof=extra_dof, slope_scale=slope_scale, robust_dof=robust_dof,
             position_weight=position_weight, position_mixture=position_mixture, straight_weight=straight_weight,
-            tolerance_correlation=tolerance_correlation, n_chains=n_chains,
+            tolerance_correlation=tolerance_correlation, dwell_pace=dwell_pace, n_chains=n_chains,
             n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
             birth_window=birth_window, birth_prior_mix=birth_prior_mix,
             resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
@@ -511,6 +515,7 @@ class BetaProcessHMMSampler:
         self.position_mixture = bool(position_mixture)
         self.straight_weight = float(straight_weight)
         self.tolerance_correlation = None if tolerance_correlation is None else float(tolerance_correlation)
+        self.dwell_pace = bool(dwell_pace)
         self.extra_dof = float(extra_dof)
         self.slope_scale = float(slope_scale)
         self.n_chains = int(n_chains)
@@ -638,6 +643,7 @@ class _Run:
         if dwell is not None:
             self.dwell_mask = dwell_mask(lengths, self.T, self.D)
             self.dwell_prior = dwell_prior(self.dtype, self.device)
+            self.pace_ratios = PACE_RATIOS if cfg.dwell_pace else (0.0,)
             seen = dwell[..., self.dwell_mask]
             # a neutral start (delta = 0: no dwell effect until the states say otherwise)
             self.dwell_beta = torch.stack([seen.mean(), torch.zeros_like(seen.mean())]).expand(self.C, 2).clone()
@@ -1288,7 +1294,8 @@ class _Run:
             lp = lp + self._occupancy_terms(onehot).sum(-1) + self._occupancy_constant()
         parts["emission"] = lp
         parts["dwell"] = (lp.new_zeros(B) if self.dwell is None
-                          else dwell_evidence(self.dwell_prior, self.dwell, self.dwell_mask, phase))
+                          else dwell_evidence(self.dwell_prior, self.dwell, self.dwell_mask, phase,
+                                         self.pace_ratios))
         counts = transition_counts(s, self.lengths.expand(B, N), K, free_transitions(phase, self.D)).to(self.dtype)
         parts["transitions"] = dirichlet_multinomial_log_prob(counts, F, alpha.view(B, 1, 1, 1),
                                                               kappa.view(B, 1, 1, 1)).sum(-1)
@@ -1653,7 +1660,7 @@ class _Run:
         lp = lp + (trans[:P] - trans[P:]) + (init[:P] - init[P:])
         if self.dwell is not None:
             ev = dwell_evidence(self.dwell_prior, self.dwell, self.dwell_mask,
-                                duration_phases(torch.cat([cand_s, s[None]]), self.D))
+                                duration_phases(torch.cat([cand_s, s[None]]), self.D), self.pace_ratios)
             lp = lp + ev[:P] - ev[P:]
         ibp = ibp_log_prior(cand_f, hyper[2].expand(P), self.cfg.feature_concentration).to(self.dtype)
         return lp + ibp - ibp_log_prior(F, hyper[2], self.cfg.feature_concentration).to(self.dtype)
@@ -1713,7 +1720,7 @@ class _Run:
         lp = lp + (trans[:P] - trans[P:]) + (init[:P] - init[P:])
         if self.dwell is not None:  # the dwell evidence depends on where runs start in every sequence
             ev = dwell_evidence(self.dwell_prior, self.dwell, self.dwell_mask,
-                                duration_phases(torch.cat([cand_s, s[None]]), self.D))
+                                duration_phases(torch.cat([cand_s, s[None]]), self.D), self.pace_ratios)
             lp = lp + ev[:P] - ev[P:]
         ibp = ibp_log_prior(cand_f, hyper[2].expand(P), self.cfg.feature_concentration).to(self.dtype)
         return lp + ibp - ibp_log_prior(F, hyper[2], self.cfg.feature_concentration).to(self.dtype)
