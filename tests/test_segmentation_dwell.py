@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ import lfd_torch.segmentation.sampler as sampler_module
 from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
 from lfd_torch.segmentation import segment
 from lfd_torch.segmentation.dwell import (
+    PACE_RATIOS,
     dwell_covariate,
     dwell_evidence,
     dwell_log_likelihood,
@@ -82,6 +84,33 @@ def test_dwell_evidence_is_the_multivariate_student_t_of_the_regression(generato
         y = (c[b] if per_chain else c)[mask].numpy()
         scale = s0 / nu0 * (np.eye(len(y)) + X @ v0 @ X.T)
         want = stats.multivariate_t(loc=np.zeros(len(y)), shape=scale, df=nu0).logpdf(y)
+        assert float(got[b]) == pytest.approx(want, abs=1e-8)
+
+
+@pytest.mark.parametrize("per_chain", [False, True])
+def test_dwell_evidence_with_pace_levels_is_the_student_t_of_the_run_covariance(generator, per_chain):
+    """Pace of a run: with a level u_r ~ N(0, g sigma^2) per run, c is a multivariate Student t with scale
+    S0 / nu0 (Omega_g + X V0 X^T), Omega_g = blockdiag_r(I + g 1 1^T) built here by a loop over the runs (scipy as
+    the reference); the evidence is the mean over the grid of g, and g = 0 alone is the run-free term."""
+    N, T, D, B = 2, 30, 3, 3
+    c = torch.randn(*((B,) if per_chain else ()), N, T, generator=generator, dtype=F64) * 0.4
+    mask = dwell_mask(torch.tensor([30, 24]), T, D)
+    phase = _random_phases(generator, B, N, T, D)
+    prior = dwell_prior()
+    got = dwell_evidence(prior, c, mask, phase, PACE_RATIOS)
+    torch.testing.assert_close(dwell_evidence(prior, c, mask, phase, (0.0,)), dwell_evidence(prior, c, mask, phase))
+    nu0, s0, v0 = float(prior.dof), float(prior.scale[0, 0]), prior.row_covariance.numpy()
+    for b in range(B):
+        X = dwell_regressors(phase[b], mask)[mask].numpy()
+        y = (c[b] if per_chain else c)[mask].numpy()
+        run = torch.cumsum((phase[b] == 0).long(), -1)  # run index of every point, per sequence
+        labels = [(i, int(run[i, t])) for i, t in mask.nonzero().tolist()]
+        same = np.array([[a == z for z in labels] for a in labels], dtype=float)
+        logs = []
+        for g in PACE_RATIOS:
+            scale = s0 / nu0 * (np.eye(len(y)) + g * same + X @ v0 @ X.T)
+            logs.append(stats.multivariate_t(loc=np.zeros(len(y)), shape=scale, df=nu0).logpdf(y))
+        want = float(torch.logsumexp(torch.tensor(logs), 0)) - math.log(len(PACE_RATIOS))
         assert float(got[b]) == pytest.approx(want, abs=1e-8)
 
 
@@ -338,3 +367,19 @@ def test_dwell_cue_typed_errors():
     x = torch.randn(30, 2, dtype=F64).cumsum(0)
     with pytest.raises(ShapeMismatchError, match="dwell"):
         cfg.run([x], [x], torch.Generator().manual_seed(0), min_duration=2, dwell=[torch.zeros(29, dtype=F64)])
+
+
+def test_pace_levels_find_the_corner_where_only_the_pace_changes(monkeypatch):
+    """Property: on a single constant-speed straight 3-D demonstration (benchmark data case 1) the legs of a
+    37-degree corner differ in speed; the run-free defaults merge them (3 steps), the pace levels of ``dwell_pace``
+    find all three switches within 3 % (4 steps). Typed error for a non-bool."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "experiments"))
+    from bench_segmentation import data_seed
+
+    syn = FAMILIES["straight_const_3d"](torch.Generator().manual_seed(data_seed("straight_const_3d", 1)), 1)
+    default = segment(syn.demos, generator=torch.Generator().manual_seed(1))
+    paced = segment(syn.demos, generator=torch.Generator().manual_seed(1), dwell_pace=True)
+    assert default.n_steps == 3 and not _every_switch(default, syn)
+    assert paced.n_steps == 4 and _every_switch(paced, syn)
+    with pytest.raises(InvalidArgumentError, match="dwell_pace"):
+        segment(syn.demos, generator=torch.Generator().manual_seed(0), dwell_pace=1)

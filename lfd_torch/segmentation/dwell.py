@@ -64,6 +64,19 @@ phases; the collapsed score adds the NIG evidence of c given b. Points outside t
 labelling can put a switch there; the start and end rests of every demonstration would otherwise pose as the spread
 inside a step). It needs D >= 2 (with D = 1 the expanded states carry no phase).
 
+Pace of a run (``dwell_pace``, an option, not the default). A demonstrator may also carry out each step at a pace
+of its own (each subtask its own reaching movement), so that the pace changes where the step changes even without a
+pause; the synthetic constant-speed families draw every leg's speed on its own. The option gives every run r a level
+of its own, c_t = mu + u_r + delta b_t + e_t with u_r ~ N(0, g sigma^2), so that c of one sequence is Gaussian with
+covariance sigma^2 Omega, Omega = blockdiag_r(I + g 1 1^T) over its runs (the points of a run in the mask). With the
+level scaled by sigma the model stays conjugate: the NIG evidence is that of the generalised least-squares
+statistics X^T Omega^-1 X, X^T Omega^-1 c, c^T Omega^-1 c (Sherman-Morrison per run: Omega_r^-1 = I - g / (1 + g n_r)
+1 1^T), minus 1/2 log |Omega| = 1/2 sum_r log(1 + g n_r); g has a uniform prior over :data:`PACE_RATIOS` and is
+summed out. g = 0 is the run-free term. Only the collapsed score (the map search's objective) carries the levels:
+they are not an emission of single points, so the chains' moves, which need one, keep the run-free term; the
+switch times at full rate keep its shift too (:func:`~lfd_torch.segmentation.segmentation._dwell_switch_prior`).
+MEASURED_PACE
+
 Prior (c is a log ratio to the sequence's median, so unit free): sigma^2 ~ IG with nu0 = 3, S0 = 0.1 (E[sigma^2]
 = 0.1, i.e. a dwell typically within a factor e^0.3 of the median inside a step); (mu, delta) | sigma^2 ~ N(0,
 sigma^2 10^2 I), so delta / sigma has a prior standard deviation of 10 (vague over any plausible dwell ratio).
