@@ -179,25 +179,33 @@ def dwell_regressors(phase: Tensor, mask: Tensor, dtype: torch.dtype = torch.flo
     return torch.stack([torch.ones_like(b), b], -1)
 
 
-def _statistics(c: Tensor, mask: Tensor, phase: Tensor, ratio: float = 0.0) -> tuple[Tensor, ...]:
-    """MNIW statistics (counts, Szz, Suz, Suu) of shape (B, 1, ...) of the labellings' phases (B, N, T): those of
-    :func:`~lfd_torch.segmentation.field.field_statistics` for the regressors [1, b_t] over the mask, in closed
-    form (b_t is 0 or 1, so b_t^2 = b_t and only sum b_t and sum b_t c_t depend on the labelling; the map search
-    scores hundreds of labellings at once). With a pace ratio g > 0 (module docstring, "Pace of a run") they are
-    the generalised least-squares statistics X^T Omega^-1 X, Omega = blockdiag_r(I + g 1 1^T) over the runs r:
-    per run, sum_t x_t y_t - g / (1 + g n_r) (sum_t x_t)(sum_t y_t)."""
+def _sums(c: Tensor, mask: Tensor, phase: Tensor, per_run: bool = False) -> dict[str, Tensor]:
+    """The data sums behind :func:`_statistics` for the labellings' phases (B, N, T), each (B,): n, sum b_t,
+    sum c_t, sum b_t c_t, sum c_t^2 over the mask (b_t is 0 or 1, so b_t^2 = b_t and only sum b_t and sum b_t c_t
+    depend on the labelling; the map search scores hundreds of labellings at once); with ``per_run`` also the sums
+    of 1, b_t and c_t over every run (B, N T + 1) (:func:`_per_run`)."""
     B = phase.shape[0]
     m = mask.to(c.dtype)
     cm = (c * m).reshape(-1, mask.numel())  # (1 or B, N T)
     b = ((phase == 0) & mask).to(c.dtype).reshape(B, -1)
-    n = m.sum().expand(B)
-    n_b = b.sum(-1)
-    s_c = cm.sum(-1).expand(B)
-    s_cb = (cm * b).sum(-1)
-    s_cc = (cm * c.reshape(-1, mask.numel())).sum(-1).expand(B)
-    s_11, s_1b, s_bb = n, n_b, n_b
+    out = {"n": m.sum().expand(B), "b": b.sum(-1), "c": cm.sum(-1).expand(B), "cb": (cm * b).sum(-1),
+           "cc": (cm * c.reshape(-1, mask.numel())).sum(-1).expand(B)}
+    if per_run:
+        out.update(n_r=_per_run(m.reshape(1, -1), phase), b_r=_per_run(b, phase), c_r=_per_run(cm, phase))
+    return out
+
+
+def _gls_statistics(sums: dict[str, Tensor], ratio: float = 0.0) -> tuple[tuple[Tensor, ...], Tensor | None]:
+    """MNIW statistics (counts, Szz, Suz, Suu) of shape (B, 1, ...) for the regressors [1, b_t] (those of
+    :func:`~lfd_torch.segmentation.field.field_statistics`) from :func:`_sums`, and log |Omega| (B,) (None for
+    g = 0). With a pace ratio g > 0 (module docstring, "Pace of a run") they are the generalised least-squares
+    statistics X^T Omega^-1 X, Omega = blockdiag_r(I + g 1 1^T) over the runs r: per run,
+    sum_t x_t y_t - g / (1 + g n_r) (sum_t x_t)(sum_t y_t), and log |Omega| = sum_r log(1 + g n_r)."""
+    n = sums["n"]
+    s_11, s_1b, s_bb, s_c, s_cb, s_cc = n, sums["b"], sums["b"], sums["c"], sums["cb"], sums["cc"]
+    log_det = None
     if ratio > 0.0:
-        n_r, b_r, c_r = (_per_run(x, phase) for x in (m.reshape(1, -1), b, cm))
+        n_r, b_r, c_r = sums["n_r"], sums["b_r"], sums["c_r"]
         f = ratio / (1.0 + ratio * n_r)
         s_11 = s_11 - (f * n_r * n_r).sum(-1)
         s_1b = s_1b - (f * n_r * b_r).sum(-1)
@@ -205,9 +213,17 @@ def _statistics(c: Tensor, mask: Tensor, phase: Tensor, ratio: float = 0.0) -> t
         s_c = s_c - (f * c_r * n_r).sum(-1)
         s_cb = s_cb - (f * c_r * b_r).sum(-1)
         s_cc = s_cc - (f * c_r * c_r).sum(-1)
+        log_det = torch.log1p(ratio * n_r).sum(-1)
+    B = n.shape[0]
     szz = torch.stack([torch.stack([s_11, s_1b], -1), torch.stack([s_1b, s_bb], -1)], -2)  # (B, 2, 2)
     suz = torch.stack([s_c, s_cb], -1).unsqueeze(-2)  # (B, 1, 2)
-    return n.unsqueeze(-1), szz.unsqueeze(1), suz.unsqueeze(1), s_cc.view(B, 1, 1, 1)
+    return (n.unsqueeze(-1), szz.unsqueeze(1), suz.unsqueeze(1), s_cc.view(B, 1, 1, 1)), log_det
+
+
+def _statistics(c: Tensor, mask: Tensor, phase: Tensor) -> tuple[Tensor, ...]:
+    """MNIW statistics (counts, Szz, Suz, Suu) of shape (B, 1, ...) of the labellings' phases (B, N, T), no
+    pace levels (:func:`_gls_statistics` with g = 0)."""
+    return _gls_statistics(_sums(c, mask, phase))[0]
 
 
 def _per_run(x: Tensor, phase: Tensor) -> Tensor:
@@ -216,11 +232,6 @@ def _per_run(x: Tensor, phase: Tensor) -> Tensor:
     B, N, T = phase.shape
     run = (phase == 0).long().cumsum(-1) + T * torch.arange(N, device=phase.device).unsqueeze(-1)  # 1 + i T ..
     return x.new_zeros(B, N * T + 1).scatter_add_(-1, run.reshape(B, -1), x.expand(B, -1))
-
-
-def _run_log_det(mask: Tensor, phase: Tensor, ratio: float, dtype: torch.dtype) -> Tensor:
-    """(B,) log |Omega| = sum_r log(1 + g n_r), n_r the points of run r in the mask (:func:`_statistics`)."""
-    return torch.log1p(ratio * _per_run(mask.to(dtype).reshape(1, -1), phase)).sum(-1)
 
 
 def dwell_posterior(prior: FieldPrior, c: Tensor, mask: Tensor, phase: Tensor) -> FieldPrior:
@@ -235,12 +246,12 @@ def dwell_evidence(prior: FieldPrior, c: Tensor, mask: Tensor, phase: Tensor,
     ``pace_ratios``: the values of g = (spread of the runs' pace levels / sigma)^2 under a uniform prior, integrated
     out too (module docstring, "Pace of a run"); (0,): no level per run (:data:`PACE_RATIOS` for the default grid).
     """
+    sums = _sums(c, mask, phase, per_run=any(g > 0.0 for g in pace_ratios))
     out = []
     for g in pace_ratios:
-        ev = field_log_marginal_likelihood(prior, *_statistics(c, mask, phase, float(g)))[..., 0]
-        if g > 0.0:
-            ev = ev - 0.5 * _run_log_det(mask, phase, float(g), ev.dtype)
-        out.append(ev)
+        stats, log_det = _gls_statistics(sums, float(g))
+        ev = field_log_marginal_likelihood(prior, *stats)[..., 0]
+        out.append(ev if log_det is None else ev - 0.5 * log_det)
     if len(out) == 1:
         return out[0]
     return torch.logsumexp(torch.stack(out), 0) - math.log(len(out))
