@@ -88,10 +88,10 @@ straight 2-D 10 / 10); but on the held-out families, whose speed varies regardle
 (``--families rounded_const_2d rounded_const_3d rounded_vary_2d rounded_vary_3d``,
 ``bench_segmentation_held_out_dwell_pace.json``), 75.0 % against 76.3 % (2 gained, 3 lost, all with a varying
 speed), and on LASA (``experiments/bench_segmentation_seeds.py --segment-option dwell_pace=True``,
-``bench_segmentation_seeds_dwell_pace.json``) Multi_Models_1's one-step route {5, 6} is cut where the hand changes
-pace on 9 and 7 of 10 seeds (two route groupings), Multi_Models_3 gains a step on each route (7 and 5, 9-10 of 10)
-and takes 10.5 s per seed (median; 12.7 s at most; the stored default table, another run: 6.3 s). A constant pace per step is what the
-constant-speed families draw, not what a hand does; so it stays an option.
+``bench_segmentation_seeds_dwell_pace.json``) Multi_Models_1's one-step route {5, 6} is cut in two steps on 9 and 7
+of 10 seeds (two route groupings), Multi_Models_3 gains a step on each route (7 and 5, 9-10 of 10)
+and takes 10.5 s per seed (median; 12.7 s at most; the stored default table, another run: 6.3 s).
+A constant pace per step is what the constant-speed families draw, not what a hand does; so it stays an option.
 
 Prior (c is a log ratio to the sequence's median, so unit free): sigma^2 ~ IG with nu0 = 3, S0 = 0.1 (E[sigma^2]
 = 0.1, i.e. a dwell typically within a factor e^0.3 of the median inside a step); (mu, delta) | sigma^2 ~ N(0,

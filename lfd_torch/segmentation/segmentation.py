@@ -1050,8 +1050,8 @@ def segment(
             minimum duration of at least 2 grid points.
         dwell_pace: with ``dwell_cue``, the collapsed score (so ``selection="map"``) also gives every run its own
             pace level (:mod:`.dwell`, "Pace of a run"): a change of pace where the directions change is evidence of
-            a switch. Measured, not the default: it finds more constant-speed corners but cuts LASA strokes where
-            the hand changes pace (README, segmentation).
+            a switch. Measured, not the default: it finds more constant-speed corners, but cuts a one-step LASA
+            route in two on only some seeds (README, segmentation).
         noise_model: the position noise behind the velocities' noise (the direction reliabilities of :mod:`.field`
             and the path-length grid): "ar1" (default) white or correlated, fitted by
             :func:`position_noise_model`; "white": white, from lag-one second differences (:func:`position_noise`;
