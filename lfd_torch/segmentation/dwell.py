@@ -92,6 +92,11 @@ speed), and on LASA (``experiments/bench_segmentation_seeds.py --segment-option 
 of 10 seeds (two route groupings), Multi_Models_3 gains a step on each route (7 and 5, 9-10 of 10)
 and takes 10.5 s per seed (median; 12.7 s at most; the stored default table, another run: 6.3 s).
 A constant pace per step is what the constant-speed families draw, not what a hand does; so it stays an option.
+A drift of the pace within a run as well (a level and a slope per run, u_r + v_r (t - t_r) / n_r, v_r ~ N(0,
+g sigma^2); Omega_r stays a sum of two orthogonal rank-one updates), which would let a hand's smooth change of pace
+stay inside one step: it kept 1 of the 4 synthetic cases gained (the single straight 2-D case 0), and of the 5
+varying-speed held-out cases that the levels changed it misses 2 that the default finds and finds none that the
+default misses (a one-off patch on those 9 cases, not stored).
 
 Prior (c is a log ratio to the sequence's median, so unit free): sigma^2 ~ IG with nu0 = 3, S0 = 0.1 (E[sigma^2]
 = 0.1, i.e. a dwell typically within a factor e^0.3 of the median inside a step); (mu, delta) | sigma^2 ~ N(0,
