@@ -745,14 +745,15 @@ def _filleted_path(corners: Tensor, fractions: list[float]) -> tuple[Tensor, Ten
 
     Returns:
         pieces (P, 3, d): start point, unit tangent u, unit normal n of each piece (n = 0 on a straight piece);
-        radii (P,) (0: straight piece); bounds (P + 1,) arc length at the start of each piece, then the total.
+        radii (P,) (0: straight piece); bounds (P + 1,) arc length at the start of each piece, then the total;
+        switches (M - 1,) arc length of every inner corner's switch: its arc's midpoint (the corner for f_m = 0).
     """
     M = corners.shape[0] - 1
     d = corners[1:] - corners[:-1]
     lengths = d.norm(dim=-1)
     u = d / lengths.unsqueeze(-1)
     t = [0.0] + [fractions[m] * float(min(lengths[m], lengths[m + 1])) for m in range(M - 1)] + [0.0]
-    starts, tangents, normals, radii, sizes = [], [], [], [], []
+    starts, tangents, normals, radii, sizes, switches = [], [], [], [], [], []
     zero = torch.zeros_like(corners[0])
     for m in range(M):
         starts.append(corners[m] + t[m] * u[m])
@@ -760,6 +761,8 @@ def _filleted_path(corners: Tensor, fractions: list[float]) -> tuple[Tensor, Ten
         normals.append(zero)
         radii.append(0.0)
         sizes.append(float(lengths[m]) - t[m] - t[m + 1])
+        if m < M - 1:
+            switches.append(sum(sizes))
         if m < M - 1 and t[m + 1] > 0.0:
             cos_theta = float((u[m] @ u[m + 1]).clamp(-1.0, 1.0))
             theta = math.acos(cos_theta)
@@ -770,9 +773,11 @@ def _filleted_path(corners: Tensor, fractions: list[float]) -> tuple[Tensor, Ten
             normals.append(n / n.norm())
             radii.append(radius)
             sizes.append(radius * theta)
+            switches[-1] += 0.5 * radius * theta
     bounds = torch.tensor([0.0] + sizes, dtype=corners.dtype, device=corners.device).cumsum(0)
     return (torch.stack([torch.stack(starts), torch.stack(tangents), torch.stack(normals)], 1),
-            torch.tensor(radii, dtype=corners.dtype, device=corners.device), bounds)
+            torch.tensor(radii, dtype=corners.dtype, device=corners.device), bounds,
+            torch.tensor(switches, dtype=corners.dtype, device=corners.device))
 
 
 def _points_on(pieces: Tensor, radii: Tensor, bounds: Tensor, s: Tensor) -> Tensor:
@@ -840,19 +845,12 @@ def rounded_steps(
     cleans, switches, angles = [], [], []
     for _ in range(n_demos):
         c = corners + 0.02 * local_t * torch.randn(corners.shape, generator=generator, dtype=dtype, device=device)
-        pieces, radii, bounds = _filleted_path(c, fractions)
+        pieces, radii, bounds, at = _filleted_path(c, fractions)
         n = max(20 * M, int(round(n_nom * sum(lengths) / geo_mean * _rand(generator, 0.85, 1.15))))
         wave = None if profile == "constant" else (amplitude, cycles, _rand(generator, 0.0, 2.0 * math.pi))
         s = _speed_to_arc(n, float(bounds[-1]), wave, dtype, device)
         cleans.append(_points_on(pieces, radii, bounds, s))
-        # the switch: the arc's midpoint (the corner itself for a zero fillet)
-        mids, k = [], 0
-        for p in range(radii.shape[0]):
-            if float(radii[p]) > 0:
-                mids.append(0.5 * float(bounds[p] + bounds[p + 1]))
-            elif p > 0 and float(radii[p - 1]) == 0:
-                mids.append(float(bounds[p]))
-        switches.append([int(torch.searchsorted(s, torch.tensor(v, dtype=dtype, device=device))) for v in mids])
+        switches.append(torch.searchsorted(s, at).tolist())  # first sample at or past the arc's midpoint
         angles.append(_corner_angles(c, normals, bends))
     return _noisy_steps(generator, cleans, switches, angles, corners, lengths, profile, noise_fraction)
 
