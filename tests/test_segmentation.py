@@ -1075,24 +1075,26 @@ def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(m
             assert float(cos.median()) > 0.9, k
 
 
-@pytest.mark.parametrize(("position_weight", "straight_weight", "dwell_cue", "tolerance"),
-                         [(0.0, 0.0, False, None), (None, 0.0, False, None), (None, 0.5, False, None),
-                          (None, 0.5, True, None), (None, 0.5, True, (0.9, 0.1, 0.02))],
+@pytest.mark.parametrize(("position_weight", "straight_weight", "dwell_cue", "tolerance", "demo_offset"),
+                         [(0.0, 0.0, False, None, 0.0), (None, 0.0, False, None, 0.0), (None, 0.5, False, None, 0.0),
+                          (None, 0.5, True, None, 0.0), (None, 0.5, True, (0.9, 0.1, 0.02), 0.0),
+                          (None, 0.5, True, (0.9, 0.1, 0.02), 16.0)],
                          ids=["directions", "with_position", "with_straight_states", "with_dwell",
-                              "with_correlated_tolerance"])
+                              "with_correlated_tolerance", "with_demo_offsets"])
 def test_map_search_batched_scores_equal_the_full_score_one_candidate_at_a_time(monkeypatch, position_weight,
-                                                                                straight_weight, dwell_cue, tolerance):
+                                                                                straight_weight, dwell_cue, tolerance,
+                                                                                demo_offset):
     """The mode search's shortcuts (``_Run._climb_to_mode``) against the plain computation: the reassignment
     and shift scores updated from the current score by the terms a move touches equal ``_collapsed_score`` of every
     candidate, and the batched Viterbi relabelling of several labellings (the look-ahead and split candidates)
     equals relabelling them one at a time; on the returned labelling and on each of its splits (more states,
     other runs). With a correlated tolerance (rho, sigma) too, where a sample's term depends on whether it starts
-    a run."""
+    a run, and with the demonstrations' own offsets (per-sequence statistics)."""
     syn = synthetic(*MUTATION_CASE)
     runs = capture_runs(monkeypatch)
     seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="map",
                   position_weight=position_weight, straight_weight=straight_weight, dwell_cue=dwell_cue,
-                  tolerance_correlation=0.0 if tolerance is None else None)
+                  tolerance_correlation=0.0 if tolerance is None else None, demo_offset=demo_offset)
     run, res = runs[-1], seg.sampler
     if tolerance is not None:
         run._set_tolerance(*tolerance)

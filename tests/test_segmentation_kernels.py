@@ -508,3 +508,92 @@ def test_straight_or_affine_field_evidence_and_posterior_against_monte_carlo():
     ev_a = field_log_marginal_likelihood(prior, *stats)
     mix = torch.logaddexp(math.log(rho) + ev_s, math.log1p(-rho) + ev_a)
     assert float(ev[0]) == pytest.approx(float(mix[0]), abs=1e-12)
+
+
+def test_demo_offset_statistics_against_scipy_and_the_augmented_regression(generator):
+    """Every sequence's own offset Delta_i ~ N(0, v Psi) integrated out: (1) for fixed (B, Psi) the sequence's
+    likelihood is the Gaussian with covariance Psi kron (W^-1 + v 1 1^T) over its stacked samples (scipy); (2) the
+    evidence equals the MNIW evidence of the regression with one more offset column per sequence, of prior
+    variance v (the same model written as a larger conjugate regression)."""
+    from lfd_torch.segmentation.field import (
+        FieldPrior, demo_offset_statistics, field_log_marginal_likelihood, field_prior, field_statistics,
+    )  # fmt: skip
+
+    d, N, T, v = 3, 3, 9, 2.5
+    p = d + 1
+    prior = field_prior(d, direction_noise=0.3, extra_dof=4.0)
+    z = torch.cat([torch.randn(N, T, d, generator=generator, dtype=F64), torch.ones(N, T, 1, dtype=F64)], -1)
+    u = torch.randn(N, T, d, generator=generator, dtype=F64)
+    w = torch.rand(N, T, generator=generator, dtype=F64) + 0.2
+    labels = torch.ones(N, T, 1, dtype=F64)
+    labels[0, :2] = 0.0  # sequence 0 visits the state less often
+    (counts, szz, suz, suu), extra = demo_offset_statistics(*field_statistics(z, u, w, labels), v)
+    assert counts.shape == (1,) and szz.shape == (1, p, p) and extra.shape == (1,)
+    # (1) the conditional likelihood of all sequences at a fixed field and noise
+    b = torch.randn(d, p, generator=generator, dtype=F64)
+    a = torch.randn(d, d, generator=generator, dtype=F64)
+    psi = a @ a.T + 0.5 * torch.eye(d, dtype=F64)
+    ours = (extra[0] - 0.5 * counts[0] * (d * math.log(2 * math.pi) + torch.logdet(psi))
+            + 0.5 * d * (torch.log(w) * labels[..., 0]).sum())
+    pinv = torch.linalg.inv(psi)
+    quad = suu[0] - suz[0] @ b.T - b @ suz[0].T + b @ szz[0] @ b.T
+    ours = ours - 0.5 * torch.trace(pinv @ quad)
+    reference = 0.0
+    for i in range(N):
+        keep = labels[i, :, 0] > 0
+        n_i = int(keep.sum())
+        rows = torch.diag(1.0 / w[i, keep]) + v * torch.ones(n_i, n_i, dtype=F64)
+        mean = (z[i, keep] @ b.T).reshape(-1)  # sample-major stacking: cov = rows kron psi
+        cov = torch.kron(rows, psi)
+        reference += stats.multivariate_normal(mean.numpy(), cov.numpy()).logpdf(u[i, keep].reshape(-1).numpy())
+    assert float(ours) == pytest.approx(reference, abs=1e-8)
+    # (2) the evidence against the augmented conjugate regression
+    evidence = field_log_marginal_likelihood(prior, counts, szz, suz, suu)[0] + extra[0]
+    za = torch.zeros(N, T, p + N, dtype=F64)
+    za[..., :p] = z
+    for i in range(N):
+        za[i, :, p + i] = 1.0
+    va = torch.zeros(p + N, p + N, dtype=F64)
+    va[:p, :p] = prior.row_covariance
+    va[p:, p:] = v * torch.eye(N, dtype=F64)
+    augmented = FieldPrior(torch.zeros(d, p + N, dtype=F64), va, prior.dof, prior.scale)
+    flat = field_statistics(za.reshape(N * T, -1), u.reshape(N * T, d), w.reshape(N * T), labels.reshape(N * T, 1))
+    assert float(evidence) == pytest.approx(float(field_log_marginal_likelihood(augmented, *flat)[0]), abs=1e-8)
+    # v = 0 is the plain pooled statistics
+    plain = field_statistics(z.reshape(N * T, p), u.reshape(N * T, d), w.reshape(N * T), labels.reshape(N * T, 1))
+    zero, extra0 = demo_offset_statistics(*field_statistics(z, u, w, labels), 0.0)
+    for x, y in zip(zero, plain):
+        torch.testing.assert_close(x, y)
+    assert float(extra0.abs().max()) == 0.0
+
+
+def test_demo_offsets_let_two_turned_demonstrations_share_one_straight_field(generator):
+    """Two demonstrations of one straight leg whose directions differ by 0.3 rad, seen with a tight tolerance
+    (0.05 rad): one shared field must explain the difference with its tolerance, so two fields (one per
+    demonstration) have the higher evidence; with each demonstration's own offset (v = 16, about 0.2 rad) the shared
+    field wins, while for one demonstration the offsets change the evidence by less than a nat."""
+    from lfd_torch.segmentation.field import demo_offset_statistics, field_mixture_evidence, field_prior, field_statistics
+
+    d, T = 2, 40
+    prior = field_prior(d, direction_noise=0.05, extra_dof=30.0)
+    s = torch.linspace(-1.0, 1.0, T, dtype=F64)
+    z, u = [], []
+    for angle, shift in ((-0.15, -0.1), (0.15, 0.1)):
+        direction = torch.tensor([math.cos(angle), math.sin(angle)], dtype=F64)
+        x = s.unsqueeze(-1) * direction + torch.tensor([0.0, shift], dtype=F64)
+        z.append(torch.cat([x, torch.ones(T, 1, dtype=F64)], -1))
+        noisy = direction + 0.02 * torch.randn(T, d, generator=generator, dtype=F64)
+        u.append(noisy / noisy.norm(dim=-1, keepdim=True))
+    z, u, w = torch.stack(z), torch.stack(u), torch.ones(2, T, dtype=F64)
+    one = torch.ones(2, T, 1, dtype=F64)
+
+    def shared(v):
+        stats, extra = demo_offset_statistics(*field_statistics(z, u, w, one), v)
+        return float(field_mixture_evidence(prior, *stats, 0.5)[0][0] + extra[0])
+
+    separate = sum(float(field_mixture_evidence(prior, *field_statistics(z[i], u[i], w[i], one[i]), 0.5)[0][0])
+                   for i in range(2))
+    assert shared(0.0) < separate < shared(16.0)
+    single = [demo_offset_statistics(*field_statistics(z[:1], u[:1], w[:1], one[:1]), v) for v in (0.0, 16.0)]
+    evidences = [float(field_mixture_evidence(prior, *st, 0.5)[0][0] + ex[0]) for st, ex in single]
+    assert abs(evidences[1] - evidences[0]) < 1.0

@@ -246,6 +246,25 @@ common step count on 10 of 10 seeds (``bench_segmentation_seeds.py``). Not cured
 demonstration still gives 5 steps (its true switches, at pauses, are found; the scoop's U bottom and the near-rest
 of the tipping are cut too: the fields prefer those cuts by far more than the dwell term charges).
 
+Demonstrations' own offsets (``demo_offset`` v; :func:`~lfd_torch.segmentation.field.demo_offset_statistics`). Two
+demonstrations of one step are two instances of one primitive: their legs are a little displaced and turned against
+each other (the synthetic generators jitter every corner by 2 % of the shorter leg), so with several demonstrations
+one field per state must absorb their differences in its tolerance, and a tolerance tight enough to see a mild
+corner then cuts a curved leg shared by four demonstrations once more. In the collapsed score each demonstration i
+may add its own offset Delta_ik ~ N(0, v Psi_k) to the field of state k, B_ik = B_k + Delta_ik e_p^T (e_p the
+offset regressor): a constant turn of the directions of a straight leg, a displacement of the centre of an arc.
+Integrated out, it leaves the MNIW regression on B_k with the same Psi_k and a rank-one correction of every
+sequence's statistics (Woodbury), so the score stays exact and conjugate; with one demonstration it only widens the
+offset's prior. The sampler's own moves keep one field per state. Measured (``bench_segmentation.py --parts
+synthetic --method segment --segment-option ...``, 280 cases, every switch within 3 %): at the default tolerance
+v = 1 changes nothing (86.4 %); with ``direction_noise=0.05``, v = 16 gives 90.4 % (0.05 alone: 89.6 %), every
+family at 9 or 10 of 10 but straight_const_3d with one demonstration (8) and the constant-speed scoop (1 / 1), and
+v = 4 gives 90.0 %; with the learned tolerance (``tolerance_correlation=None``) v = 16 gives 87.9 % (88.2 % without).
+LASA at ``direction_noise=0.05``, v = 16 (``bench_segmentation_seeds.py --segment-option ...``) is not seed-stable
+(Multi_Models_1 demonstrations 0-2 and 6, Multi_Models_2 demonstration 0, Multi_Models_4 route {0-3}: their modal
+step count on 3-6 of 10 seeds): the offsets group the demonstrations of a route but do not stop a tight tolerance
+from cutting a human curve where its direction drifts. So v = 0 is the default.
+
 Subsampling (done by :func:`lfd_torch.segmentation.segment`, ``max_samples``) bounds T: the forward recursion is
 sequential in T, so the cost of a sweep is about (number of feature blocks + 2) x T small batched operations.
 """
@@ -275,6 +294,7 @@ from lfd_torch.segmentation.field import (
     FieldPrior,
     correlated_tolerance_observations,
     correlated_tolerance_prior,
+    demo_offset_statistics,
     field_log_density,
     field_log_likelihood,
     field_mixture_evidence,
@@ -380,6 +400,7 @@ HYPERPARAMETER_RANGES: dict[str, tuple[type, float, float, bool, bool]] = {
     "straight_weight": (float, 0.0, 1.0, True, False),
     "slope_scale": (float, 0.0, 1e3, False, True),
     "tolerance_correlation": (float, 0.0, 1.0, True, False),
+    "demo_offset": (float, 0.0, 1e3, True, True),
     "n_chains": (int, 1, 64, True, True),
     "n_iterations": (int, 1, 10_000, True, True),
     "burn_in": (float, 0.0, 1.0, True, False),
@@ -453,6 +474,9 @@ class BetaProcessHMMSampler:
             deviations; None: chosen with the labelling among :data:`TOLERANCES` (``selection="map"``).
         dwell_pace: with the dwell term, the collapsed score also gives every run its own pace level
             (:mod:`.dwell`, "Pace of a run"; the chains' moves keep the run-free dwell term).
+        demo_offset: v >= 0, in the collapsed score (so ``selection="map"``) every demonstration adds its own offset
+            Delta ~ N(0, v Psi_k) to the field of each state it visits (module docstring, "Demonstrations' own
+            offsets"); 0: one field per state for all demonstrations.
         n_chains: independent chains C (run batched).
         n_iterations: sweeps per chain.
         burn_in: fraction of the sweeps discarded before the best sample is searched.
@@ -484,6 +508,7 @@ class BetaProcessHMMSampler:
         straight_weight: float = 0.0,
         tolerance_correlation: float | None = 0.0,
         dwell_pace: bool = False,
+        demo_offset: float = 0.0,
         n_chains: int = 4,
         n_iterations: int = 100,
         burn_in: float = 0.5,
@@ -499,7 +524,7 @@ class BetaProcessHMMSampler:
             transition_concentration=transition_concentration, stickiness=stickiness,
             direction_noise=direction_noise, extra_dof=extra_dof, slope_scale=slope_scale, robust_dof=robust_dof,
             position_weight=position_weight, position_mixture=position_mixture, straight_weight=straight_weight,
-            tolerance_correlation=tolerance_correlation, dwell_pace=dwell_pace, n_chains=n_chains,
+            tolerance_correlation=tolerance_correlation, dwell_pace=dwell_pace, demo_offset=demo_offset, n_chains=n_chains,
             n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
             birth_window=birth_window, birth_prior_mix=birth_prior_mix,
             resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
@@ -516,6 +541,7 @@ class BetaProcessHMMSampler:
         self.straight_weight = float(straight_weight)
         self.tolerance_correlation = None if tolerance_correlation is None else float(tolerance_correlation)
         self.dwell_pace = bool(dwell_pace)
+        self.demo_offset = float(demo_offset)
         self.extra_dof = float(extra_dof)
         self.slope_scale = float(slope_scale)
         self.n_chains = int(n_chains)
@@ -693,8 +719,27 @@ class _Run:
 
     def _stats(self, age: Tensor | None, w: Tensor, onehot: Tensor) -> tuple[Tensor, ...]:
         """Field statistics (:func:`field_statistics`) of labellings onehot (B, n, K) with weights w (B, n), each
-        sample in the view of its age (B, n) (None: the white view)."""
-        return field_statistics(*self._viewed(age), w, onehot)
+        sample in the view of its age (B, n) (None: the white view); with ``demo_offset``, those of
+        :func:`demo_offset_statistics` (n = N T)."""
+        return self._field_terms(age, w, onehot)[0]
+
+    def _field_terms(self, age: Tensor | None, w: Tensor, onehot: Tensor) -> tuple[tuple[Tensor, ...], Tensor]:
+        """:meth:`_stats` and the per-state log-determinant term (B, K) of the demonstrations' own offsets, which
+        the field evidence adds (0 without them)."""
+        z, u = self._viewed(age)
+        ratio = self.cfg.demo_offset
+        if ratio == 0.0:
+            stats = field_statistics(z, u, w, onehot)
+            return stats, torch.zeros_like(stats[0])
+        N = self.N
+        per_sequence = field_statistics(z.unflatten(-2, (N, -1)), u.unflatten(-2, (N, -1)), w.unflatten(-1, (N, -1)),
+                                        onehot.unflatten(-2, (N, -1)))
+        return demo_offset_statistics(*per_sequence, ratio)
+
+    def _field_evidence(self, age: Tensor | None, w: Tensor, onehot: Tensor) -> Tensor:
+        """(B, K) the states' field evidence (spike-and-slab, :func:`field_mixture_evidence`)."""
+        stats, extra = self._field_terms(age, w, onehot)
+        return field_mixture_evidence(self.score_prior, *stats, self.cfg.straight_weight)[0] + extra
 
     def _rand(self, *shape: int) -> Tensor:
         return torch.rand(*shape, generator=self.gen, dtype=self.dtype, device=self.device)
@@ -1243,8 +1288,7 @@ class _Run:
             log_gamma = half * math.log(half) - math.lgamma(half) + (half - 1.0) * torch.log(lam) - half * lam
             lp = lp + (onehot * (log_gamma + 0.5 * self.d * torch.log(lam)).unsqueeze(-1)).sum(-2)
             w = w * lam
-        lp = lp + field_mixture_evidence(self.score_prior, *self._stats(age, w, onehot),
-                                         self.cfg.straight_weight)[0]
+        lp = lp + self._field_evidence(age, w, onehot)
         if self.tau > 0:
             lp = lp + niw_log_marginal_likelihood(self.pos_prior, *self._position_statistics(onehot))
             lp = lp + self._occupancy_terms(onehot)
@@ -1287,8 +1331,7 @@ class _Run:
             flat_valid = valid.reshape(1, N * T)
             lp = lp + ((log_gamma + 0.5 * d * torch.log(lam)) * flat_valid).sum(-1)
             w = w * lam
-        lp = lp + field_mixture_evidence(self.score_prior, *self._stats(age, w, onehot),
-                                         self.cfg.straight_weight)[0].sum(-1)
+        lp = lp + self._field_evidence(age, w, onehot).sum(-1)
         if self.tau > 0:  # the tempered NIW evidence of each state's positions (and of its occupancies)
             lp = lp + niw_log_marginal_likelihood(self.pos_prior, *self._position_statistics(onehot)).sum(-1)
             lp = lp + self._occupancy_terms(onehot).sum(-1) + self._occupancy_constant()
