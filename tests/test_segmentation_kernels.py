@@ -572,7 +572,9 @@ def test_demo_offsets_let_two_turned_demonstrations_share_one_straight_field(gen
     (0.05 rad): one shared field must explain the difference with its tolerance, so two fields (one per
     demonstration) have the higher evidence; with each demonstration's own offset (v = 16, about 0.2 rad) the shared
     field wins, while for one demonstration the offsets change the evidence by less than a nat."""
-    from lfd_torch.segmentation.field import demo_offset_statistics, field_mixture_evidence, field_prior, field_statistics
+    from lfd_torch.segmentation.field import (
+        demo_offset_statistics, field_mixture_evidence, field_prior, field_statistics,
+    )  # fmt: skip
 
     d, T = 2, 40
     prior = field_prior(d, direction_noise=0.05, extra_dof=30.0)

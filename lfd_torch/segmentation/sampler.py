@@ -251,24 +251,25 @@ demonstrations of one step are two instances of one primitive: their legs are a 
 each other (the synthetic generators jitter every corner by 2 % of the shorter leg), so with several demonstrations
 one field per state must absorb their differences in its tolerance, and a tolerance tight enough to see a mild
 corner then cuts a curved leg shared by four demonstrations once more. In the collapsed score each demonstration i
-may add its own offset Delta_ik ~ N(0, v Psi_k) to the field of state k, B_ik = B_k + Delta_ik e_p^T (e_p the
-offset regressor): a constant turn of the directions of a straight leg, a displacement of the centre of an arc.
-Integrated out, it leaves the MNIW regression on B_k with the same Psi_k and a rank-one correction of every
-sequence's statistics (Woodbury), so the score stays exact and conjugate; with one demonstration it only widens the
-offset's prior. The sampler's own moves keep one field per state. Measured (``bench_segmentation.py --parts
-synthetic --method segment --segment-option ...``, 280 cases, every switch within 3 %): at the default tolerance
-v = 1 changes no verdict (86.4 %); with ``direction_noise=0.05``, v = 16 gives 90.4 % (0.05 alone: 89.6 %), every
-family at 9 or 10 of 10 but straight_const_3d with one demonstration (8) and the constant-speed scoop (1 / 1), and
-v = 4 gives 90.0 %; at ``direction_noise=0.1`` v = 16 gives 88.2 %; with the learned tolerance
-(``tolerance_correlation=None``) v = 16 gives 87.9 % (88.2 % without). Tables of the v = 1 run and of the v = 16 runs at 0.05 (with
-and without ``tolerance_correlation=0.9``) are in results/tables (README, "Each demonstration's own offset"); the other
-figures are one-off runs of the same command, tables not kept. LASA at ``direction_noise=0.05``, v = 16
+may add its own offset Delta_ik ~ N(0, v Psi_k) to the field of state k, B_ik = B_k + Delta_ik e_p^T (e_p the offset
+regressor): a constant turn of the directions of a straight leg, a displacement of the centre of an arc. Integrated
+out, it leaves the MNIW regression on B_k with the same Psi_k and a rank-one correction of every sequence's
+statistics (Woodbury), so the score stays exact and conjugate; with one demonstration it only widens the offset's
+prior. The sampler's own moves keep one field per state. Measured (``bench_segmentation.py --parts synthetic
+--method segment --segment-option ...``, 280 cases, every switch within 3 %): at the default tolerance v = 1 changes
+no verdict (86.4 %); with ``direction_noise=0.05``, v = 16 gives 90.4 % (0.05 alone: 89.6 %), every family at 9 or
+10 of 10 but straight_const_3d with one demonstration (8) and the constant-speed scoop (1 / 1), and v = 4 gives 90.0
+%; at ``direction_noise=0.1`` v = 16 gives 88.2 %; with the learned tolerance (``tolerance_correlation=None``) v =
+16 gives 87.9 % (88.2 % without). Tables of the v = 1 run and of the v = 16 runs at 0.05 (with and without
+``tolerance_correlation=0.9``) are in results/tables (README, "Each demonstration's own offset"); the other figures
+are one-off runs of the same command, tables not kept. The Student-t scales of the score's profile
+(:meth:`_Run._profile_scales`) keep the residuals from the shared field. LASA at ``direction_noise=0.05``, v = 16
 (``bench_segmentation_seeds.py --segment-option ...``) is not seed-stable (Multi_Models_1 demonstrations 0-2 and 6,
-Multi_Models_2 demonstrations 0 and 6, Multi_Models_4 demonstrations 0-3: their modal step count on 3-6 of 10
-seeds; 5-16 s per run): the offsets group the demonstrations of a route but do not stop a tight tolerance from
-cutting a human curve where its direction drifts. So v = 0 is the default. The constant-speed scoop is not reached
-by the offsets: its hook state holds about 10 grid points for 12 field parameters in 3-D, and the approach's field
-takes the hook's first points. A field family with fewer parameters, a rotation about an axis plus an offset with
+Multi_Models_2 demonstrations 0 and 6, Multi_Models_4 demonstrations 0-3: their modal step count on 3-6 of 10 seeds;
+5-16 s per run): the offsets group the demonstrations of a route but do not stop a tight tolerance from cutting a
+human curve where its direction drifts. So v = 0 is the default. The constant-speed scoop is not reached by the
+offsets: its hook state holds about 10 grid points for 12 field parameters in 3-D, and the approach's field takes
+the hook's first points. A field family with fewer parameters, a rotation about an axis plus an offset with
 isotropic noise (a planar arc or a line; normal-inverse-gamma, from the same statistics) as a third component of the
 straight/affine mixture, narrows the gap between the returned and the true labelling by 0.4-4.9 nats on data cases
 0-3 (one demonstration, with and without v = 16 at 0.05) and reverses it in one (a one-off study, not built).
@@ -532,7 +533,8 @@ class BetaProcessHMMSampler:
             transition_concentration=transition_concentration, stickiness=stickiness,
             direction_noise=direction_noise, extra_dof=extra_dof, slope_scale=slope_scale, robust_dof=robust_dof,
             position_weight=position_weight, position_mixture=position_mixture, straight_weight=straight_weight,
-            tolerance_correlation=tolerance_correlation, dwell_pace=dwell_pace, demo_offset=demo_offset, n_chains=n_chains,
+            tolerance_correlation=tolerance_correlation, dwell_pace=dwell_pace, demo_offset=demo_offset,
+            n_chains=n_chains,
             n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
             birth_window=birth_window, birth_prior_mix=birth_prior_mix,
             resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
