@@ -345,6 +345,24 @@ def _log_uniform_lengths(generator: torch.Generator, n: int, ratio: float) -> li
     return [math.exp(_rand(generator, -half, half)) for _ in range(n)]
 
 
+def _draw_legs(generator: torch.Generator, n_steps: int | None, length_ratio: float, turn_deg: tuple[float, float]
+               ) -> tuple[int, list[float], list[float]]:
+    """M legs (None: drawn in {3, 4, 5}), their log-uniform arc lengths and the M - 1 corner angles (degrees)."""
+    M = _randint(generator, 3, 5) if n_steps is None else n_steps
+    if M < 1:
+        raise ValueError(f"need n_steps >= 1, got {M}")
+    lengths = _log_uniform_lengths(generator, M, length_ratio)
+    return M, lengths, [_rand(generator, *turn_deg) for _ in range(M - 1)]
+
+
+def _jitter_scale(lengths: list[float], dtype: torch.dtype, device: torch.device) -> Tensor:
+    """(M + 1, 1) the scale of each corner's jitter: the shorter adjacent leg (the start has only the first leg;
+    the goal, 0, is not jittered)."""
+    M = len(lengths)
+    local = [lengths[0]] + [min(lengths[m - 1], lengths[m]) for m in range(1, M)] + [0.0]
+    return torch.tensor(local, dtype=dtype, device=device).unsqueeze(-1)
+
+
 def _render(
     generator: torch.Generator,
     corners: Tensor,
@@ -387,9 +405,7 @@ def _render(
         nominal = [n_nom * v / geo_mean for v in lengths]
     if noise_fraction is None:
         noise_fraction = _rand(generator, 0.003, 0.01)
-    # corner jitter scale: the shorter adjacent leg (the start has only the first leg, the goal is fixed)
-    local = [lengths[0]] + [min(lengths[m - 1], lengths[m]) for m in range(1, M)] + [0.0]
-    local_t = torch.tensor(local, dtype=dtype, device=device).unsqueeze(-1)
+    local_t = _jitter_scale(lengths, dtype, device)
     cleans, switches, angles = [], [], []
     for _ in range(n_demos):
         jitter = torch.randn(corners.shape, generator=generator, dtype=dtype, device=device)
@@ -471,11 +487,7 @@ def polyline_steps(
     """
     if dim < 2:
         raise ValueError(f"need dim >= 2, got {dim}")
-    M = _randint(generator, 3, 5) if n_steps is None else n_steps
-    if M < 1:
-        raise ValueError(f"need n_steps >= 1, got {M}")
-    lengths = _log_uniform_lengths(generator, M, length_ratio)
-    turns = [_rand(generator, *turn_deg) for _ in range(M - 1)]
+    M, lengths, turns = _draw_legs(generator, n_steps, length_ratio, turn_deg)
     bends = [_rand(generator, *bend_deg) for _ in range(M)]
     corners, normals, phis = _heading_path(generator, dim, lengths, turns, bends, dtype)
     return _render(generator, corners, normals, phis, n_demos=n_demos, profile=profile, noise_fraction=noise_fraction)
@@ -828,11 +840,7 @@ def rounded_steps(
     if not 0.0 <= fillet[0] <= fillet[1] < 0.5:
         raise ValueError(f"fillet must be a range within [0, 0.5), got {fillet}")
     device = generator.device
-    M = _randint(generator, 3, 5) if n_steps is None else n_steps
-    if M < 1:
-        raise ValueError(f"need n_steps >= 1, got {M}")
-    lengths = _log_uniform_lengths(generator, M, length_ratio)
-    turns = [_rand(generator, *turn_deg) for _ in range(M - 1)]
+    M, lengths, turns = _draw_legs(generator, n_steps, length_ratio, turn_deg)
     corners, normals, bends = _heading_path(generator, dim, lengths, turns, [0.0] * M, dtype)
     fractions = [_rand(generator, *fillet) for _ in range(M - 1)]
     geo_mean = math.exp(sum(math.log(v) for v in lengths) / M)
@@ -840,8 +848,7 @@ def rounded_steps(
     amplitude, cycles = _rand(generator, 0.3, 0.6), _rand(generator, 1.0, 3.0)
     if noise_fraction is None:
         noise_fraction = _rand(generator, 0.003, 0.01)
-    local = [lengths[0]] + [min(lengths[m - 1], lengths[m]) for m in range(1, M)] + [0.0]
-    local_t = torch.tensor(local, dtype=dtype, device=device).unsqueeze(-1)
+    local_t = _jitter_scale(lengths, dtype, device)
     cleans, switches, angles = [], [], []
     for _ in range(n_demos):
         c = corners + 0.02 * local_t * torch.randn(corners.shape, generator=generator, dtype=dtype, device=device)
