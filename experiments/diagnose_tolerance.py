@@ -4,7 +4,8 @@ under a correlated (AR(1)) tolerance (issue 7, the next step after ``direction_n
 The field emission of :mod:`lfd_torch.segmentation.field` lets a direction deviate from its state's affine field
 by white noise of scale sigma_u (``direction_noise``, 0.2 rad) on top of the propagated velocity noise c_t. A
 tight sigma_u finds the mild constant-speed corners of the synthetic families, but cuts LASA's human curves into
-more steps (README, tables ``bench_segmentation_*_tolerance005.json``): along a human curve the direction drifts
+more steps (segmentation_studies.md, tables ``bench_segmentation_*_tolerance005.json``): along a human curve the
+direction drifts
 away from any one affine field, at a corner it jumps. This script scores labellings under emissions in which the
 deviation is a smooth process instead,
 

@@ -1,6 +1,7 @@
 """The segmentation's measured settings side by side, against issue 7's acceptance checks (stored tables only).
 
-    python experiments/segmentation_variants.py [--tables results/tables] [--markdown results/tables/segmentation_variants.md]
+    python experiments/segmentation_variants.py [--tables results/tables] \
+        [--markdown results/tables/segmentation_variants.md]
 
 Every setting of :func:`lfd_torch.segmentation.segment` measured on the development benchmark (the 280 synthetic
 cases of ``bench_segmentation.py --parts synthetic``: 14 families x {1, 4} demonstrations x 10 data seeds), and

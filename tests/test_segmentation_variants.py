@@ -82,3 +82,10 @@ def test_every_registered_variant_reads_its_stored_tables():
                  if r["all_switches"] * r["cases"] < 9 - 1e-9]
     assert summaries[0]["below"] == reference
     assert rows_below_bar(table["synthetic"]) == reference
+
+
+def test_the_readme_table_is_the_one_the_command_writes():
+    """The README's side-by-side table is the command's output for the stored tables, not a hand-made copy."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    table = markdown([summarize(v) for v in VARIANTS]).split("\n\nRows below")[0]
+    assert table in readme

@@ -101,7 +101,8 @@ default 80 (``bench_segmentation.py --parts synthetic --n-demos 1 --segment-opti
 Re-measured with the present defaults (dwell term, straight states, learned transition hyperparameters, shift move):
 a fixed 0.05 gives every switch on 89.6 % of the 280 synthetic cases (against 86.4 % at 0.2; straight_const_3d 8 / 10
 of 10 with 1 / 4 demonstrations against 6 / 6) but LASA loses its seed stability (Multi_Models_1 demonstrations
-0-2 5 steps on 7-8 of 10 seeds, three route groupings; Multi_Models_3 8 steps on 5-6 of 10; README, tables
+0-2 5 steps on 7-8 of 10 seeds, three route groupings; Multi_Models_3 8 steps on 5-6 of 10;
+experiments/segmentation_studies.md, tables
 ``bench_segmentation_segment_tolerance005.json`` and ``bench_segmentation_seeds_tolerance005.json``), and sigma_u
 chosen with the labelling (the collapsed score of the best chain's mode over a log grid 0.01-0.9 rad, alternated
 with the map search until it stays; a one-off patch, not kept) went to 0.020 on Multi_Models_1 and 0.034 on
@@ -186,7 +187,8 @@ points; a leg's perpendicular spread is far below the prior's expected covarianc
 own normalisation, so the measured gain is -1.1 to -0.8 nats on legs of 10-15 grid points, 0.1 at 30 and 3.2-3.8 at
 60 (tau 1/3; ``experiments/diagnose_position.py``, table ``diagnose_position.json``): about neutral or a charge on the
 80-point grid, a pull toward cuts only on long legs. Its weight moves which mild corners are found, both ways
-(``position_weight`` 0.1 and 0.6 against 1 / D on the synthetic benchmark, README, "What the position term does to
+(``position_weight`` 0.1 and 0.6 against 1 / D on the synthetic benchmark, experiments/segmentation_studies.md, "What
+the position term does to
 the steps"). ``position_mixture=True`` scores the positions as a mixture over space instead: each state's tempered
 Gaussian times its occupancy pi_ik of sequence i, pi_i integrated out under a Chinese restaurant process of
 concentration 1 over the tempered counts x_ik = tau n_ik (per state sum_i log Gamma(x_ik), plus the
@@ -194,7 +196,8 @@ labelling-free -sum_i log Gamma(1 + tau n_i); :meth:`_Run._occupancy_terms`), so
 component, as in a Bayesian GMM; the Viterbi proposal adds tau log of the predictive occupancies. It acts through
 the collapsed score (the chains sample the plain term). The occupancies charge a cut about tau n log 2 nats more
 (-2.3 to -17.8 nats on the same legs): on the 280 synthetic cases every switch 82.5 % against 86.4 %, 12 cases lost,
-each one step short, one gained (README; table ``bench_segmentation_segment_position_mixture.json``). So a spatial
+each one step short, one gained (experiments/segmentation_studies.md; table
+``bench_segmentation_segment_position_mixture.json``). So a spatial
 term neutral about a cut along a leg of any length is open.
 Measured with ``selection="map"`` and tau = 1 / D (``experiments/bench_segmentation_seeds.py --selection map
 --segment-option position_weight=None``): every demonstration and route of LASA Multi_Models_1-4 gets its most
@@ -260,9 +263,11 @@ prior. The sampler's own moves keep one field per state. Measured (``bench_segme
 no verdict (86.4 %); with ``direction_noise=0.05``, v = 16 gives 90.4 % (0.05 alone: 89.6 %), every family at 9 or
 10 of 10 but straight_const_3d with one demonstration (8) and the constant-speed scoop (1 / 1), and v = 4 gives 90.0
 %; at ``direction_noise=0.1`` v = 16 gives 88.2 %; with the learned tolerance (``tolerance_correlation=None``) v =
-16 gives 87.9 % (88.2 % without). Tables of the v = 1 run and of the v = 16 runs at 0.05 (with and without
-``tolerance_correlation=0.9``) are in results/tables (README, "Each demonstration's own offset"); the other figures
-are one-off runs of the same command, tables not kept. The Student-t scales of the score's profile
+16 gives 87.9 % (88.2 % without). Tables of the v = 1 run, of the v = 16 runs at 0.05 (with and without
+``tolerance_correlation=0.9``) and of v = 16 with the learned tolerance
+(``bench_segmentation_segment_learned_tolerance_demo_offset16.json``) are in results/tables
+(experiments/segmentation_studies.md, "Each demonstration's own offset"; ``experiments/segmentation_variants.py``);
+the other figures are one-off runs of the same command, tables not kept. The Student-t scales of the score's profile
 (:meth:`_Run._profile_scales`) keep the residuals from the shared field. LASA at ``direction_noise=0.05``, v = 16
 (``bench_segmentation_seeds.py --segment-option ...``) is not seed-stable (Multi_Models_1 demonstrations 0-2 and 6,
 Multi_Models_2 demonstrations 0 and 6, Multi_Models_4 demonstrations 0-3: their modal step count on 3-6 of 10 seeds;

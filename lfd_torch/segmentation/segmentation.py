@@ -1039,7 +1039,8 @@ def segment(
         extra_dof: weight of that prior expectation (pseudo-observations of the noise covariance).
         slope_scale: prior standard deviation of a field's slope per radius of the data (:func:`.field.field_prior`;
             1: a field turns the direction by about a radian per radius). Measured, not the default: 3 trades
-            straight and multi-demonstration cases against single curved demonstrations (README).
+            straight and multi-demonstration cases against single curved demonstrations
+            (experiments/segmentation_studies.md).
         position_weight: tau of the tempered position Gaussian of every state, in [0, 1]; None: 1 / D (D the
             minimum duration in grid samples, the default); 0: directions alone (:mod:`.sampler`, "Position").
         position_mixture: the position term as a mixture over space, each state's Gaussian times its occupancy
@@ -1056,11 +1057,12 @@ def segment(
         dwell_pace: with ``dwell_cue``, the collapsed score (so ``selection="map"``) also gives every run its own
             pace level (:mod:`.dwell`, "Pace of a run"): a change of pace where the directions change is evidence of
             a switch. Measured, not the default: it finds more constant-speed corners, but cuts a one-step LASA
-            route in two on only some seeds (README, segmentation).
+            route in two on only some seeds (experiments/segmentation_studies.md, "A pace level per run").
         demo_offset: v >= 0: in the collapsed score (so ``selection="map"``) every demonstration adds its own offset
             ~ N(0, v Psi) to the field of each state it visits (:mod:`.sampler`, "Demonstrations' own offsets"); 0:
             one field per state. Measured, not the default: with a tight tolerance it keeps a curved leg shared by
-            several demonstrations in one step, but LASA is not seed-stable at that tolerance (README).
+            several demonstrations in one step, but LASA is not seed-stable at that tolerance
+            (experiments/segmentation_studies.md, "Each demonstration's own offset").
         noise_model: the position noise behind the velocities' noise (the direction reliabilities of :mod:`.field`
             and the path-length grid): "ar1" (default) white or correlated, fitted by
             :func:`position_noise_model`; "white": white, from lag-one second differences (:func:`position_noise`;
@@ -1069,7 +1071,8 @@ def segment(
             stickiness kappa (their given values are the chains' starting points; :mod:`.sampler`, move 5): how
             often a demonstration switches is learned from it, not fixed. Against the fixed values (the sampler
             class's default) on the synthetic benchmark: one more single scoop with pauses segmented right (a
-            search failure with them), one single constant-speed scoop less seed-stable (README, segmentation).
+            search failure with them), one single constant-speed scoop less seed-stable
+            (experiments/segmentation_studies.md, "Earlier settings").
         Remaining keyword arguments: see :class:`BetaProcessHMMSampler`; their accepted ranges (upper bounds where
             a hyperparameter scales the cost, with the measured cost) are
             :data:`~lfd_torch.segmentation.sampler.HYPERPARAMETER_RANGES`.
