@@ -41,26 +41,8 @@ the 22 missed synthetic cases scored by ``experiments/diagnose_segmentation.py -
 round a gap by at most 1 / k of it at each end and the interpolation changes no case's every-switch verdict, but at
 10 Hz (k = 1) a grid gap is one or two whole samples, a fast noisy speed estimate made the grid drop a level and
 the term read the two-sample gap as a pause (``bench_segmentation.py --rate 10``: every switch 60 % of the 280
-cases with the sample times, 73 % with the pace). Two corrections were tried and not kept: the turning 1 - u_(t-1).u_t
-of the grid directions as a third regressor of c (delta falls to ~0 at constant speed and the dwell part of the gap
-to 0.2-0.8 nats, but at dwelling corners the turn and the rest coincide, the turn takes the rest's evidence, and
-every switch fell from 8 to 7 of 10 on scoop_dwell_3d and from 9 to 7 on curved_dwell_3d, one demonstration; one-off
-patches, not stored). A third: c as the log time per unit of a direction-free distance (the speed at t the larger of
-the two one-sided least-squares speeds over t - k .. t and t .. t + k, one of which lies on a single leg wherever
-the corner is): the chord's excess at 108-137 degree corners falls from 0.3 to under 0.1, but a pause's c falls
-about as much (2.3 to 1.1: the one-sided windows reach out of the rest), and on the 280 cases every switch fell
-from 86.8 to 81.8 % (scoop with pauses 9 / 9 -> 4 / 3 of 10 with 1 / 4 demonstrations) while straight_const_3d stayed
-at 6 / 6 (a one-off patch, not stored). A fourth: a turn covariate in place of c, the angle between the mean grid
-directions of the D points before t and of the D points from t on (or its log), as the response of the same
-regression; on the four constant-speed families that hold the misses (straight 3-D, curved 2-D and 3-D, scoop; 80
-cases) every switch on 49 and 50 of 80 against 47 (a one-off patch, not stored): the shift it learns (0.8-1.4 rad
-over a noise of 0.2-0.5) charges a switch placed where the path turns smoothly, but a mild corner between short
-legs turns those mean directions by little more than a curved leg does. A fifth: a shift of its own for every
-switch, delta_j ~ N(delta, g sigma^2) (so a run start has variance (1 + g) sigma^2, g summed over 0-100 as the
-pace ratios below), which lets the sharp corners' chords vary without charging the mild ones: on 11 missed cases (9 of
-them those whose dwell part favours the returned labelling) it changed that part by -8.2 to +0.6 nats, and in
-every one the returned labelling still scored above the truth (a one-off patch scoring the map search with it,
-not stored).
+cases with the sample times, 73 % with the pace). Five corrections were tried and not kept
+(``experiments/segmentation_studies.md``, "Dwell: corrections tried").
 
 It is an emission of the phase-expanded HMM (phase 0: the first point of a run, any other phase: inside a run), so
 every move stays exact: the forward filter and FFBS add log N(c_t; mu + delta, sigma^2) to the phase-0 states and

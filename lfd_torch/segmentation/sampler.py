@@ -27,33 +27,18 @@ and sequences. The chain with the best joint log probability (over the samples a
 
 Which sample (``selection``), among the sweeps of every chain after burn-in. :func:`lfd_torch.segmentation.segment`
 defaults to "map" with the position term, straight states, the dwell term and learned gamma, alpha and kappa (move
-5; sections below; the sampler class itself to "joint" with directions alone and fixed values). The figures in this
-docstring that name no options were measured with the earlier defaults of ``segment`` (``selection="joint",
-position_weight=0, straight_weight=0, dwell_cue=False, resample_hyperparameters=False``): their commands reproduce
-them with ``--segment-option position_weight=0 straight_weight=0 dwell_cue=False resample_hyperparameters=False``
-(and ``--selection joint`` for ``bench_segmentation_seeds.py`` and ``bench_scooping_segmentation.py``); figures
-of the map search, the position term, straight states or the dwell term were measured with fixed values
-(``resample_hyperparameters=False``).
+5; sections below; the sampler class itself to "joint" with directions alone and fixed values).
     "joint": the highest joint log probability. Its collapsed score (every continuous parameter integrated
         out: MNIW evidence of each state's directions, Dirichlet-multinomial sticky transitions, IBP prior) is
         reported too.
-    "collapsed": the highest collapsed score. Measured (issue 7): it made the step count seed-stable where the
-        joint choice was not (Baxter scooping demonstration: 5 steps on 10 of 10 generator seeds, against 5-7; LASA
-        Multi_Models_3 demonstrations 0-3: 7 steps on 10, 10, 10, 9 of 10 seeds), but under this prior it
-        under-segments single demonstrations (synthetic families, 280 cases: exact step count 75 % against 91 %,
-        every switch 69 % against 78 %): the collapsed evidence of one field across a mild or dwelling corner
-        beats two fields there.
+    "collapsed": the highest collapsed score. Measured (``experiments/segmentation_studies.md``,
+        "The sampler's options, measured"): more seed-stable than "joint" where the evidence is clear, but it
+        under-segments single demonstrations under this prior.
     "modal": per sequence the number of runs (pieces) most frequent over all kept samples of all chains (the
         posterior mode of each demonstration's step count, ties to the smaller), and among the samples with those
         counts (or, if none has all of them, with most of them) the highest joint log probability: a Bayes estimate
         of the count under 0-1 loss, which averages over the posterior instead of following its best draw.
-        Measured (``experiments/bench_segmentation_seeds.py --selection modal --segment-option n_chains=8``): the
-        clear LASA routes become seed-stable (Multi_Models_2 and _3 demonstrations 0-3), the ambiguous ones do not
-        (Multi_Models_1, _4, and demonstrations 4-6 of _2 and _3, whose posterior puts comparable mass on two or
-        three counts); on the synthetic families it shares the collapsed choice's bias: exact step count 80 %, every
-        switch 70 %, found / true 0.95 with 4 chains (84 %, 74 %, 0.96 with 8). The joint choice counts more steps than the posterior's mode
-        because a sampled field's density rewards every extra state with its concentration (no Occam factor);
-        the prior was calibrated with it.
+        Measured: it shares the collapsed choice's bias (same file).
     "map": a local mode of the collapsed posterior p(s, F | u, z): from every chain's best collapsed sample, a
         coordinate ascent of the collapsed score (merge two states, alone or followed by a relabelling; reassign one
         state's runs in one sequence to another or a new state; Viterbi relabelling under the posterior-mean
@@ -63,52 +48,19 @@ of the map search, the position term, straight states or the dwell term were mea
         with the posterior-mean fields of its labelling. The merge is
         the move of split-merge samplers for the BP-HMM (Hughes, Fox & Sudderth 2012): it leaves a mode in which one
         step is carried by two states, which the one-feature-at-a-time moves cannot join. Taken greedily, as a mode
-        search, chains that reached one basin end at one labelling. Measured (``experiments/bench_segmentation_seeds.py
-        --selection map``): every demonstration of Multi_Models_1 and _2 gets one step count on 10 of 10 seeds
-        (joint: 5-10), those of _3 on 8-10 (both routes' counts on 10 and 9), those of _4 on 5-10, because its
-        chains still end in different basins (collapsed scores 460-476 across seeds, a one-off study). Not
-        closed, before the merge look-ahead was added, by 8 chains (``--segment-option n_chains=8``) nor, in
-        one-off studies, by polishing the 12 best kept samples or by moving every chain to its polished mode at the
-        end of burn-in (the chains keep the basins they found); the look-ahead brought Multi_Models_3
-        demonstrations 4-6 from 5-6 to 9-10 of 10 (the run without it is not stored). It under-segments the
-        synthetic families more than the collapsed choice
-        (``bench_segmentation.py --parts synthetic --method segment_map``: exact step count 70 %, every switch 65 %,
-        found / true 0.91; 1 demonstration 62 %): under this prior the collapsed evidence of one affine field across
-        a 27-46 degree corner of a single noisy demonstration beats two fields by 6-20 nats (straight_const_2d,
-        study figures). A tighter free tolerance (``extra_dof=2 direction_noise=0.1``) restores the synthetic
-        families with "map" (90 %, 80 %) but makes LASA unstable again (Multi_Models_3: 3-9 of 10).
-Recalibrating the prior for "collapsed" or "modal" is open. Settings measured on the 280 synthetic cases with
-no gain over the default joint choice: ``extra_dof=2, direction_noise=0.1`` with "collapsed" (exact 89 %, every
-switch 78 %; ``experiments/bench_segmentation.py --parts synthetic --seeds 10 --method segment_collapsed
---segment-option extra_dof=2 direction_noise=0.1``; on LASA, ``bench_segmentation_seeds.py`` with the same options,
-it cuts Multi_Models_3 into 8-10 steps, the count most common on 4-7 of 10 seeds), and a slope prior three times
-looser than the offset's (90 %, 79 %; a one-off study with a patched :func:`~.field.field_prior`, no option of
-the package sets it).
+        search, chains that reached one basin end at one labelling. Alone it under-segments single
+        demonstrations (a field across a mild corner beats two); the position term, straight states and the dwell
+        term below are what make it the default (measured: same file).
+
 Why the tolerance sigma_u (``direction_noise``) is set, not learned. A tolerance shared by all states and learned
 from the data (type-II maximum likelihood, or a hyperprior) would be the principled cure for "no single tolerance
-gives both", but the data do not pick a usable value: in a one-off study (map search, ``position_weight=None``,
-``direction_noise`` 0.07-0.28) the collapsed score of the mode found rose monotonically as sigma_u fell, by
-530-620 nats from 0.2 to 0.07 on each of LASA Multi_Models_1-4 and 28-114 nats on each of 24 single synthetic
-demonstrations (four families, six seeds each). So the evidence asks for the tightest tolerance on every data set, and the tight tolerance is the
-one that breaks up LASA (above). The tolerance is a statement of what one step is: directions within about 0.2 rad
-(RMS) of one affine field. Under it a 37 degree corner between legs of 11 and 17 grid points is not a switch
-(straight_const_3d, 1 demonstration, data seed 1: the Gaussian MNIW evidence of the two legs as one field is
-4.5 nats above two fields at 0.2 and 0.2 nats above at 0.07, where the propagated velocity noise of about 0.12 rad
-per grid point dominates; a 70 degree corner of the same path gains 12 and 26 nats by the split). Nor does the
-grid resolution move that balance: ``max_samples`` 40 and 160 (velocity windows twice as long or half as long)
-give the exact step count on 73 % and 79 % of the 140 single-demonstration synthetic cases against 88 % at the
-default 80 (``bench_segmentation.py --parts synthetic --n-demos 1 --segment-option max_samples=40``).
-Re-measured with the present defaults (dwell term, straight states, learned transition hyperparameters, shift move):
-a fixed 0.05 gives every switch on 89.6 % of the 280 synthetic cases (against 86.4 % at 0.2; straight_const_3d 8 / 10
-of 10 with 1 / 4 demonstrations against 6 / 6) but LASA loses its seed stability (Multi_Models_1 demonstrations
-0-2 5 steps on 7-8 of 10 seeds, three route groupings; Multi_Models_3 8 steps on 5-6 of 10;
-experiments/segmentation_studies.md, tables
-``bench_segmentation_segment_tolerance005.json`` and ``bench_segmentation_seeds_tolerance005.json``), and sigma_u
-chosen with the labelling (the collapsed score of the best chain's mode over a log grid 0.01-0.9 rad, alternated
-with the map search until it stays; a one-off patch, not kept) went to 0.020 on Multi_Models_1 and 0.034 on
-Multi_Models_3 (5-6 and 7 steps per demonstration). What separates a synthetic corner from a LASA curve is how the
-direction leaves the field: at a corner it jumps, along a human curve it drifts. A tolerance that is a smooth
-process along the path charges a jump and not a drift: "Correlated tolerance" below.
+gives both", but the data do not pick a usable value: the collapsed score of the mode found rises monotonically
+as sigma_u falls, on LASA and on the synthetic demonstrations alike, and the tight tolerance breaks LASA's human
+curves into steps that change with the seed (measured: ``experiments/segmentation_studies.md``, "The sampler's options,
+measured"). The tolerance is a statement of what one step is: directions within about 0.2 rad (RMS) of one affine
+field. What separates a synthetic corner from a LASA curve is how the direction leaves the field: at a corner it
+jumps, along a human curve it drifts. A tolerance that is a smooth process along the path charges a jump and not a
+drift: "Correlated tolerance" below.
 
 Correlated tolerance (``tolerance_correlation`` rho;
 :func:`~lfd_torch.segmentation.field.correlated_tolerance_observations`, the derivation there). Within a run the
@@ -125,42 +77,22 @@ many points back. Ages depend on the labelling, so the collapsed score sees ever
 and reassignment scores see it through the candidates' labels, and the Viterbi relabelling (a proposal, confirmed by
 the score) gives phase 0 of the explicit-duration states the age-0 view and later phases the oldest one (so it needs
 a minimum duration D >= 2). The filter predicts through a direction that carries no information (a pause: w_t ~ 0),
-so a corner taken at rest is still a jump of the deviation; the Prais-Winsten form built first, which conditioned on
-the last noisy direction alone (commit 58b575a), let a run's deviation restart there and absorbed such corners
-(curved_dwell_3d with one demonstration 7 of 10, below). The Student t (``robust_dof``) stays, for the directions no
-field explains (the chord across a corner, :mod:`.field`), which a tight tolerance makes costly: with a Gaussian
-emission and no floor (commit 6b52d82, the same benchmark; its table is not kept) every switch was found on 86.8 %,
-and four demonstrations were cut into more steps than the truth (curved_const_2d 5 of 10 cases, found / true steps
-1.22; scoop_dwell_3d 6 of 10); with the t for the white settings only and Gaussian AR deviations (commit 020fbcb,
-reverted) 86.1 %, single demonstrations losing steps (straight, curved and out-and-back legs at constant speed, 11
-cases lost against the default, 10 gained). rho = 0, sigma =
-``direction_noise`` and tau = 0 is the white emission, the default (``tolerance_correlation=0``), and its scores
+so a corner taken at rest is still a jump of the deviation; the Prais-Winsten form built first (commit 58b575a),
+which conditioned on the last noisy direction alone, let a run's deviation restart there and absorbed such corners.
+The Student t (``robust_dof``) stays, for the directions no field explains (the chord across a corner,
+:mod:`.field`), which a tight tolerance makes costly. rho = 0, sigma = ``direction_noise`` and tau = 0 is the white
+emission, the default (``tolerance_correlation=0``), and its scores
 are unchanged. The tolerance acts through the collapsed score, i.e. the map search and ``selection="collapsed"``;
 the chains sample the white model and only seed the search; the fields returned with the result are the default
 white tolerance's posterior means of the labelling (the change-point refinement of :mod:`.segmentation` uses
 them). ``tolerance_correlation=None`` learns (rho, sigma, tau) with the labelling: type-II maximum likelihood over
 :data:`TOLERANCES` (65 white and AR settings, the grid ``experiments/diagnose_tolerance.py`` scores exactly; a
 uniform prior), alternated with the map search from the white map search's mode until the tolerance stays, i.e. a
-coordinate ascent
-of the collapsed score in (s, F, rho, sigma, tau) (:meth:`_Run._learn_tolerance`); the scores of one labelling under
-two tolerances are densities of the same directions, so they compare. Measured with ``segment``'s other defaults
-(``bench_segmentation.py --parts synthetic --method segment --segment-option tolerance_correlation=None``, table
-``bench_segmentation_segment_learned_tolerance_kalman.json``): every switch on 88.2 % of the 280 synthetic cases (the
-white default 86.4 %; 1 demonstration 87.9 %, 4 demonstrations 88.6 %), exact count 90.7 %; 7 cases gained and 2 lost
-against the default: the mild constant-speed corners of straight legs with four demonstrations are found
-(straight_const_3d 7 / 9 of 10 with 1 / 4 demonstrations, was 6 / 6), single curved demonstrations with pauses keep
-their steps (curved_dwell_3d 10 of 10), curved_const_2d gets 8 / 8 and the constant-speed scoop 1 / 0. On LASA
-(``bench_segmentation_seeds.py --segment-option tolerance_correlation=None``, table
-``bench_segmentation_seeds_learned_tolerance_kalman.json``) the data choose AR deviations and one more step than the
-white default on most routes (4 / 3 / 1 / 1, 4 / 2, 7 / 5, 4 / 3 per demonstration), one route grouping per shape;
-Multi_Models_2, _3 and _4 give every demonstration its count on 9-10 of 10 seeds, but Multi_Models_1's route {0-2}
-gets 4 steps on 7 of 10 (5 on the others) and Multi_Models_4's route {4-6} aligns to one count on 8 of 10. It costs
-time: 12.3-14.6 s per seed on Multi_Models_3 (the climbs under an AR tolerance take more moves), against the 10 s
-budget. So it is an option, not the default. With the Prais-Winsten form (commit 58b575a, tables
-``bench_segmentation_segment_learned_tolerance.json`` and ``bench_segmentation_seeds_learned_tolerance.json``): 87.5 %
-(curved_dwell_3d with one demonstration 7 of 10), Multi_Models_1 stable, Multi_Models_3's route {4-6} aligned on 6 of
-10 seeds. Choosing the tolerance before the chains are polished, under it (commit a98d740, same benchmarks, the
-Prais-Winsten form) found 88.2 % but split Multi_Models_1's steps differently on 3 of 10 seeds.
+coordinate ascent of the collapsed score in (s, F, rho, sigma, tau) (:meth:`_Run._learn_tolerance`); the scores of
+one labelling under two tolerances are densities of the same directions, so they compare. Measured: more switches
+found than the white default, but not seed-stable on LASA Multi_Models_1 and over the time budget on
+Multi_Models_3, so an option (``experiments/segmentation_variants.py``; details in
+``experiments/segmentation_studies.md``).
 
 Position (``position_weight`` tau; NIW kernels of :mod:`lfd_torch.gmm`). An affine direction field is defined over
 the whole space, so with directions alone one state may carry two pieces far apart whose directions one field
@@ -186,29 +118,13 @@ a leg traversed at an even pace mattered, cutting it in two would gain (n / D) l
 points; a leg's perpendicular spread is far below the prior's expected covariance and the second state pays its
 own normalisation, so the measured gain is -1.1 to -0.8 nats on legs of 10-15 grid points, 0.1 at 30 and 3.2-3.8 at
 60 (tau 1/3; ``experiments/diagnose_position.py``, table ``diagnose_position.json``): about neutral or a charge on the
-80-point grid, a pull toward cuts only on long legs. Its weight moves which mild corners are found, both ways
-(``position_weight`` 0.1 and 0.6 against 1 / D on the synthetic benchmark, experiments/segmentation_studies.md, "What
-the position term does to
-the steps"). ``position_mixture=True`` scores the positions as a mixture over space instead: each state's tempered
-Gaussian times its occupancy pi_ik of sequence i, pi_i integrated out under a Chinese restaurant process of
-concentration 1 over the tempered counts x_ik = tau n_ik (per state sum_i log Gamma(x_ik), plus the
-labelling-free -sum_i log Gamma(1 + tau n_i); :meth:`_Run._occupancy_terms`), so that a uniform stretch is one
-component, as in a Bayesian GMM; the Viterbi proposal adds tau log of the predictive occupancies. It acts through
-the collapsed score (the chains sample the plain term). The occupancies charge a cut about tau n log 2 nats more
-(-2.3 to -17.8 nats on the same legs): on the 280 synthetic cases every switch 82.5 % against 86.4 %, 12 cases lost,
-each one step short, one gained (experiments/segmentation_studies.md; table
-``bench_segmentation_segment_position_mixture.json``). So a spatial
-term neutral about a cut along a leg of any length is open.
-Measured with ``selection="map"`` and tau = 1 / D (``experiments/bench_segmentation_seeds.py --selection map
---segment-option position_weight=None``): every demonstration and route of LASA Multi_Models_1-4 gets its most
-common step count on 9 or 10 of 10 seeds, one route grouping per shape (without it, Multi_Models_4: 5-10 of 10,
-routes merged on 4 seeds); on the 280 synthetic cases (``bench_segmentation.py --parts synthetic --method
-segment_map --segment-option position_weight=None``) exact step count 81 %, every switch 74 % (direction-only map:
-70 %, 65 %; the joint default 91 %, 78 %): the position term does not cure the under-segmentation of single
-demonstrations described under "map". With "joint" it does not make LASA seed-stable (Multi_Models_1: 4-7 of 10,
-a one-off run of the same bench). With a free tolerance as well (``extra_dof=2``) the synthetic cases reach 83 %
-and 78 % (1 demonstration 83 %, 75 %), but LASA is less stable (Multi_Models_1's nearly straight route on 5 of 10
-seeds, Multi_Models_4 on 6-10): the trade-off of "map" between the tolerance and seed stability remains.
+80-point grid, a pull toward cuts only on long legs. Its weight, and the mixture form ``position_mixture=True``
+(each state's tempered Gaussian times its occupancy pi_ik of sequence i, pi_i integrated out under a Chinese
+restaurant process of concentration 1 over the tempered counts x_ik = tau n_ik: per state sum_i log Gamma(x_ik),
+plus the labelling-free -sum_i log Gamma(1 + tau n_i); :meth:`_Run._occupancy_terms`; the Viterbi proposal adds tau
+log of the predictive occupancies; it acts through the collapsed score), move which mild corners are found, both
+ways; the mixture charges a cut about tau n log 2 nats more. A spatial term neutral about a cut along a leg of any length is open
+(measured: ``experiments/segmentation_studies.md``).
 
 Straight states (``straight_weight`` rho; :func:`~lfd_torch.segmentation.field.field_mixture_evidence`). Under the
 affine prior alone every state pays the Occam factor of its d x d slope entries, about d^2 / 2 log(n s^2 / sigma^2)
@@ -221,17 +137,8 @@ regressor alone), else it is the affine MNIW, so a state's evidence is rho p(u |
 p(u | affine) and its posterior-mean field the two posterior means weighted by P(straight | u) (used by the
 Viterbi relabelling and the Student-t profile). The MCMC moves still sample the affine model: the mixture acts
 through the collapsed score, i.e. in ``selection="map"`` (whose chains only seed the mode search) and
-``"collapsed"``. rho = 0.5 says nothing about which kind is more common. Measured with ``selection="map"``,
-``position_weight=None, straight_weight=0.5``: every demonstration and route of LASA Multi_Models_1-4 gets its most
-common step count on 10 of 10 seeds, one route grouping per shape (``experiments/bench_segmentation_seeds.py
---selection map --segment-option position_weight=None straight_weight=0.5``; without straight states
-Multi_Models_3 9 of 10); the 280 synthetic cases (``bench_segmentation.py --parts synthetic --method segment_map
---segment-option position_weight=None straight_weight=0.5``) exact step count 85 %, every switch 77 % (1
-demonstration 76 %, 73 %; without: 81 %, 74 %, 1 demonstration 69 %, 66 %; the joint default 91 %, 78 %): straight
-legs met at speed by a single demonstration are now cut (straight_const_2d 10 of 10, was 8), but not curved legs
-with dwelling corners (curved_dwell_2d 4 of 10) nor the scoop hook (every switch 0-10 %); the Baxter scooping
-demonstration still gives 5-6 steps (``bench_scooping_segmentation.py --selection map --segment-option
-position_weight=None straight_weight=0.5``).
+``"collapsed"``. rho = 0.5 says nothing about which kind is more common. Measured: it cuts straight legs met at speed
+by a single demonstration and keeps LASA seed-stable (``experiments/segmentation_studies.md``).
 
 Dwell (``dwell``, :mod:`lfd_torch.segmentation.dwell`, the derivation there). The path-length grid hides how long
 the demonstrator spends somewhere, and a pause is where one subtask ends and the next begins. The model also
@@ -240,14 +147,8 @@ explains the log time between grid points, c_t = mu + delta b_t + noise, b_t = 1
 enters the forward pass, FFBS, the Gibbs draw, the joint log probability, the collapsed score and the map search
 exactly. Nothing fixes how much a pause counts: where the data pause at their corners delta is ~2 (a start at
 speed then pays about delta^2 / (2 sigma^2) ~ 10 nats); at constant speed ~0.4 (only the dip of the estimated
-speed where a velocity window straddles a corner). Measured with map, the position term and straight states
-(``bench_segmentation.py --parts synthetic --method segment_map --segment-option position_weight=None
-straight_weight=0.5 dwell_cue=True``, i.e. ``segment``'s defaults): every switch on 85 % of the 280 synthetic cases
-(without the dwell term 77 %); the scoop with dwelling corners 8 / 7 of 10 with 1 / 4 demonstrations (0 / 0 without),
-curved legs with dwelling corners 10 / 9 (4 / 9); LASA Multi_Models_1-4: every demonstration and route its most
-common step count on 10 of 10 seeds (``bench_segmentation_seeds.py``). Not cured: the Baxter scooping
-demonstration still gives 5 steps (its true switches, at pauses, are found; the scoop's U bottom and the near-rest
-of the tipping are cut too: the fields prefer those cuts by far more than the dwell term charges).
+speed where a velocity window straddles a corner). It is what finds the corners at which a demonstrator pauses
+(measured: ``experiments/segmentation_studies.md``).
 
 Demonstrations' own offsets (``demo_offset`` v; :func:`~lfd_torch.segmentation.field.demo_offset_statistics`). Two
 demonstrations of one step are two instances of one primitive: their legs are a little displaced and turned against
@@ -258,26 +159,10 @@ may add its own offset Delta_ik ~ N(0, v Psi_k) to the field of state k, B_ik = 
 regressor): a constant turn of the directions of a straight leg, a displacement of the centre of an arc. Integrated
 out, it leaves the MNIW regression on B_k with the same Psi_k and a rank-one correction of every sequence's
 statistics (Woodbury), so the score stays exact and conjugate; with one demonstration it only widens the offset's
-prior. The sampler's own moves keep one field per state. Measured (``bench_segmentation.py --parts synthetic
---method segment --segment-option ...``, 280 cases, every switch within 3 %): at the default tolerance v = 1 changes
-no verdict (86.4 %); with ``direction_noise=0.05``, v = 16 gives 90.4 % (0.05 alone: 89.6 %), every family at 9 or
-10 of 10 but straight_const_3d with one demonstration (8) and the constant-speed scoop (1 / 1), and v = 4 gives 90.0
-%; at ``direction_noise=0.1`` v = 16 gives 88.2 %; with the learned tolerance (``tolerance_correlation=None``) v =
-16 gives 87.9 % (88.2 % without). Tables of the v = 1 run, of the v = 16 runs at 0.05 (with and without
-``tolerance_correlation=0.9``) and of v = 16 with the learned tolerance
-(``bench_segmentation_segment_learned_tolerance_demo_offset16.json``) are in results/tables
-(experiments/segmentation_studies.md, "Each demonstration's own offset"; ``experiments/segmentation_variants.py``);
-the other figures are one-off runs of the same command, tables not kept. The Student-t scales of the score's profile
-(:meth:`_Run._profile_scales`) keep the residuals from the shared field. LASA at ``direction_noise=0.05``, v = 16
-(``bench_segmentation_seeds.py --segment-option ...``) is not seed-stable (Multi_Models_1 demonstrations 0-2 and 6,
-Multi_Models_2 demonstrations 0 and 6, Multi_Models_4 demonstrations 0-3: their modal step count on 3-6 of 10 seeds;
-5-16 s per run): the offsets group the demonstrations of a route but do not stop a tight tolerance from cutting a
-human curve where its direction drifts. So v = 0 is the default. The constant-speed scoop is not reached by the
-offsets: its hook state holds about 10 grid points for 12 field parameters in 3-D, and the approach's field takes
-the hook's first points. A field family with fewer parameters, a rotation about an axis plus an offset with
-isotropic noise (a planar arc or a line; normal-inverse-gamma, from the same statistics) as a third component of the
-straight/affine mixture, narrows the gap between the returned and the true labelling by 0.4-4.9 nats on data cases
-0-3 (one demonstration, with and without v = 16 at 0.05) and reverses it in one (a one-off study, not built).
+prior. The sampler's own moves keep one field per state. Measured: with a tight tolerance it keeps a curved leg
+shared by several demonstrations in one step, but LASA is not seed-stable at that tolerance and the held-out
+families lose, so v = 0 is the default (``experiments/segmentation_variants.py``,
+``experiments/segmentation_studies.md``).
 
 Subsampling (done by :func:`lfd_torch.segmentation.segment`, ``max_samples``) bounds T: the forward recursion is
 sequential in T, so the cost of a sweep is about (number of feature blocks + 2) x T small batched operations.
