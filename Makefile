@@ -38,7 +38,6 @@ bench: $(STAMP)
 # Every published figure and summary table, redrawn from the stored tables and libraries in results/ (no fitting).
 figures: $(STAMP)
 	$(BIN)/python experiments/figures.py
-	$(BIN)/python experiments/segmentation_variants.py --markdown results/tables/segmentation_variants.md >/dev/null
 
 # Recompute everything results/ holds: each command's publish preset writes its tables, the libraries the figures
 # are drawn from (results/libraries) and its figures; then `figures` redraws them all from what was stored. MNIST is
@@ -54,7 +53,6 @@ results: $(STAMP)
 	LFD_MNIST_DIR=$${LFD_MNIST_DIR:-../shared/data/mnist} $(BIN)/python experiments/mnist.py publish=true
 	$(BIN)/python experiments/scooping.py +experiment=scooping_publish progress=false
 	$(BIN)/python experiments/figures.py
-	$(BIN)/python experiments/segmentation_variants.py --markdown results/tables/segmentation_variants.md >/dev/null
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache
