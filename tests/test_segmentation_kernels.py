@@ -510,6 +510,52 @@ def test_straight_or_affine_field_evidence_and_posterior_against_monte_carlo():
     assert float(ev[0]) == pytest.approx(float(mix[0]), abs=1e-12)
 
 
+def test_two_slope_scales_evidence_and_posterior_against_monte_carlo():
+    """With ``wide`` the affine slab is an equal mixture of two slope scales: the evidence, P(straight | u) and the
+    posterior-mean field and noise against Monte Carlo draws from that prior (straight with probability rho, else
+    scale 1 or 3 with probability 1/2 each); with ``wide`` equal to ``prior`` nothing changes."""
+    from lfd_torch.segmentation.field import (
+        FieldPrior, field_log_likelihood, field_log_marginal_likelihood, field_mixture_evidence,
+        field_mixture_posterior_mean, field_prior, field_statistics, sample_field, straight_field_prior,
+    )  # fmt: skip
+
+    gen = torch.Generator().manual_seed(4)
+    d, n, rho, M = 2, 3, 0.25, 1_000_000
+    prior = field_prior(d, direction_noise=0.6, extra_dof=4.0)
+    wide = field_prior(d, direction_noise=0.6, extra_dof=4.0, slope_scale=3.0)
+    x = torch.randn(n, d, generator=gen, dtype=F64)
+    z = torch.cat([x, torch.ones(n, 1, dtype=F64)], -1)
+    u = torch.tensor([0.8, 0.3], dtype=F64) + 0.1 * torch.randn(n, d, generator=gen, dtype=F64) + 0.6 * x.flip(-1)
+    w = torch.rand(n, generator=gen, dtype=F64) * 0.5 + 0.5
+    stats = field_statistics(z, u, w, torch.ones(n, 1, dtype=F64))
+    ev, log_ps = field_mixture_evidence(prior, *stats, rho, wide)
+    mean, psi = field_mixture_posterior_mean(prior, *stats, rho, wide)
+    pick_wide = torch.rand(M, generator=gen, dtype=F64) < 0.5
+    row_cov = torch.where(pick_wide[:, None, None], wide.row_covariance, prior.row_covariance)
+    draws = FieldPrior(prior.mean.expand(M, d, d + 1), row_cov, prior.dof.expand(M), prior.scale.expand(M, d, d))
+    b, noise = sample_field(draws, gen)
+    straight = torch.rand(M, generator=gen, dtype=F64) < rho
+    b = torch.where(straight[:, None, None], torch.cat([torch.zeros_like(b[..., :-1]), b[..., -1:]], -1), b)
+    loglik = field_log_likelihood(z, u, w, b, noise).sum(0)  # (M,)
+    mc = torch.logsumexp(loglik, 0) - math.log(M)
+    weights = torch.softmax(loglik, 0)
+    se = float(weights.square().sum().sqrt())  # relative standard error of the estimate of p(u | z), 1 / sqrt(ESS)
+    assert se < 0.05
+    assert float(ev[0] + 0.5 * d * torch.log(w).sum()) == pytest.approx(float(mc), abs=4 * se)
+    assert float(torch.exp(log_ps[0])) == pytest.approx(float(weights[straight].sum()), abs=0.02)
+    torch.testing.assert_close(mean[0], (weights[:, None, None] * b).sum(0), atol=0.05, rtol=0)
+    torch.testing.assert_close(psi[0], (weights[:, None, None] * noise).sum(0), atol=0.05, rtol=0)
+    # exactly rho p_straight + (1 - rho) (p_1 + p_3) / 2 of the single-scale evidences
+    counts, szz, suz, suu = stats
+    ev_s = field_log_marginal_likelihood(straight_field_prior(prior), counts, szz[..., -1:, -1:], suz[..., -1:], suu)
+    ev_1, ev_3 = field_log_marginal_likelihood(prior, *stats), field_log_marginal_likelihood(wide, *stats)
+    mix = torch.logaddexp(math.log(rho) + ev_s, math.log1p(-rho) - math.log(2.0) + torch.logaddexp(ev_1, ev_3))
+    assert float(ev[0]) == pytest.approx(float(mix[0]), abs=1e-12)
+    assert abs(float(ev_1[0] - ev_3[0])) > 0.5  # the two scales are told apart by these data
+    for got, ref in zip(field_mixture_evidence(prior, *stats, rho, prior), field_mixture_evidence(prior, *stats, rho)):
+        torch.testing.assert_close(got, ref, atol=1e-12, rtol=0)
+
+
 def test_demo_offset_statistics_against_scipy_and_the_augmented_regression(generator):
     """Every sequence's own offset Delta_i ~ N(0, v Psi) integrated out: (1) for fixed (B, Psi) the sequence's
     likelihood is the Gaussian with covariance Psi kron (W^-1 + v 1 1^T) over its stacked samples (scipy); (2) the

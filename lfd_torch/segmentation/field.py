@@ -319,49 +319,68 @@ def _straight_posterior(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Ten
     return straight, field_posterior(straight, counts, szz[..., -1:, -1:], suz[..., -1:], suu)
 
 
-def _mixture(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor, straight_weight: float
-             ) -> tuple[FieldPrior, FieldPrior, Tensor, Tensor]:
-    """Affine and straight posteriors, log p(u | z) and log P(straight | u, z) under the spike-and-slab prior."""
-    post = field_posterior(prior, counts, szz, suz, suu)
-    ev_a = _log_evidence(prior, post, counts)
+def _affine(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor, wide: FieldPrior | None
+            ) -> tuple[Tensor, Tensor, Tensor]:
+    """log p(u | z, affine) and the posterior means of B and Psi under the affine slab: ``prior`` alone, or an equal
+    mixture of ``prior`` and ``wide`` (a second slope scale), each component's means weighted by its posterior
+    probability."""
+    d = suu.shape[-1]
+    means, psis, evs = [], [], []
+    for component in (prior,) if wide is None else (prior, wide):
+        post = field_posterior(component, counts, szz, suz, suu)
+        means.append(post.mean)
+        psis.append(post.scale / (post.dof - d - 1.0).clamp_min(1.0)[..., None, None])
+        evs.append(_log_evidence(component, post, counts))
+    if wide is None:
+        return evs[0], means[0], psis[0]
+    ev = torch.logaddexp(evs[0], evs[1]) - math.log(2.0)
+    r = torch.exp(evs[1] - math.log(2.0) - ev)[..., None, None]  # P(wide | u, z, affine)
+    return ev, (1 - r) * means[0] + r * means[1], (1 - r) * psis[0] + r * psis[1]
+
+
+def _mixture(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor, straight_weight: float,
+             wide: FieldPrior | None = None) -> tuple[Tensor, Tensor, FieldPrior | None, Tensor, Tensor]:
+    """The affine slab's posterior means (B, Psi), the straight posterior, log p(u | z) and log P(straight | u, z)
+    under the spike-and-slab prior."""
+    ev_a, mean_a, psi_a = _affine(prior, counts, szz, suz, suu, wide)
     if straight_weight <= 0:
-        return post, None, ev_a, torch.full_like(ev_a, float("-inf"))
+        return mean_a, psi_a, None, ev_a, torch.full_like(ev_a, float("-inf"))
     straight, post_s = _straight_posterior(prior, counts, szz, suz, suu)
     log_s = math.log(straight_weight) + _log_evidence(straight, post_s, counts)
     ev = torch.logaddexp(math.log1p(-straight_weight) + ev_a, log_s)
-    return post, post_s, ev, log_s - ev
+    return mean_a, psi_a, post_s, ev, log_s - ev
 
 
 def field_mixture_evidence(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor,
-                           straight_weight: float) -> tuple[Tensor, Tensor]:
+                           straight_weight: float, wide: FieldPrior | None = None) -> tuple[Tensor, Tensor]:
     """Evidence of a state under the spike-and-slab field prior: straight (slope 0) with probability rho =
-    ``straight_weight``, else affine (``prior``).
+    ``straight_weight``, else affine (``prior``; with ``wide``, an equal mixture of the two slope scales),
 
         p(u | z) = rho p(u | z, straight) + (1 - rho) p(u | z, affine),
+        p(u | z, affine) = p(u | z, prior)  or  (p(u | z, prior) + p(u | z, wide)) / 2,
 
-    both MNIW evidences (:func:`field_log_marginal_likelihood`; the straight one on the statistics of the offset
-    regressor alone). Batch shape (..., K); 0 for empty states.
+    all MNIW evidences (:func:`field_log_marginal_likelihood`; the straight one on the statistics of the offset
+    regressor alone, under ``prior``). Batch shape (..., K); 0 for empty states.
 
     Returns:
         log p(u | z) and log P(straight | u, z) (-inf when rho = 0).
     """
-    return _mixture(prior, counts, szz, suz, suu, straight_weight)[2:]
+    return _mixture(prior, counts, szz, suz, suu, straight_weight, wide)[3:]
 
 
 def field_mixture_posterior_mean(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor,
-                                 straight_weight: float) -> tuple[Tensor, Tensor]:
+                                 straight_weight: float, wide: FieldPrior | None = None) -> tuple[Tensor, Tensor]:
     """Posterior means E[B | u, z] (..., K, d, p) and E[Psi | u, z] (..., K, d, d) under the spike-and-slab prior of
-    :func:`field_mixture_evidence`: the two posteriors' means weighted by P(straight | u, z) (a straight field's
-    slope columns are 0)."""
-    post, post_s, _, log_ps = _mixture(prior, counts, szz, suz, suu, straight_weight)
-    d = suu.shape[-1]
-    psi = post.scale / (post.dof - d - 1.0).clamp_min(1.0)[..., None, None]
+    :func:`field_mixture_evidence`: the components' means weighted by their posterior probabilities (a straight
+    field's slope columns are 0)."""
+    mean_a, psi_a, post_s, _, log_ps = _mixture(prior, counts, szz, suz, suu, straight_weight, wide)
     if post_s is None:
-        return post.mean, psi
+        return mean_a, psi_a
+    d = suu.shape[-1]
     psi_s = post_s.scale / (post_s.dof - d - 1.0).clamp_min(1.0)[..., None, None]
-    mean_s = torch.cat([torch.zeros_like(post.mean[..., :-1]), post_s.mean], -1)
+    mean_s = torch.cat([torch.zeros_like(mean_a[..., :-1]), post_s.mean], -1)
     ps = torch.exp(log_ps)[..., None, None]
-    return ps * mean_s + (1 - ps) * post.mean, ps * psi_s + (1 - ps) * psi
+    return ps * mean_s + (1 - ps) * mean_a, ps * psi_s + (1 - ps) * psi_a
 
 
 def sample_field(params: FieldPrior, generator: torch.Generator) -> tuple[Tensor, Tensor]:

@@ -123,8 +123,8 @@ own normalisation, so the measured gain is -1.1 to -0.8 nats on legs of 10-15 gr
 restaurant process of concentration 1 over the tempered counts x_ik = tau n_ik: per state sum_i log Gamma(x_ik),
 plus the labelling-free -sum_i log Gamma(1 + tau n_i); :meth:`_Run._occupancy_terms`; the Viterbi proposal adds tau
 log of the predictive occupancies; it acts through the collapsed score), move which mild corners are found, both
-ways; the mixture charges a cut about tau n log 2 nats more. A spatial term neutral about a cut along a leg of any length is open
-(measured: ``experiments/segmentation_studies.md``).
+ways; the mixture charges a cut about tau n log 2 nats more. A spatial term neutral about a cut along a leg of any
+length is open (measured: ``experiments/segmentation_studies.md``).
 
 Straight states (``straight_weight`` rho; :func:`~lfd_torch.segmentation.field.field_mixture_evidence`). Under the
 affine prior alone every state pays the Occam factor of its d x d slope entries, about d^2 / 2 log(n s^2 / sigma^2)
@@ -139,6 +139,19 @@ Viterbi relabelling and the Student-t profile). The MCMC moves still sample the 
 through the collapsed score, i.e. in ``selection="map"`` (whose chains only seed the mode search) and
 ``"collapsed"``. rho = 0.5 says nothing about which kind is more common. Measured: it cuts straight legs met at speed
 by a single demonstration and keeps LASA seed-stable (``experiments/segmentation_studies.md``).
+
+Slope scale (``slope_scale`` s1, ``slope_scale_mix`` s2; :func:`~lfd_torch.segmentation.field.field_prior`). The
+MNIW prior gives a field's slope entries a standard deviation of s1 per radius of the data: s1 = 1 lets a field
+turn the direction by about a radian per radius, a tighter curve (the scoop's hook, about 7) pays for its slope
+and a gentle one pays a small Occam factor. How tightly a step curves is not known in advance, so with s2 > 0 the
+collapsed score's affine slab is the equal mixture of the two scales, p(u | z, affine) = (p(u | z, s1) +
+p(u | z, s2)) / 2, both exact MNIW evidences, the posterior-mean field the two posterior means weighted by their
+posterior probabilities (:func:`~lfd_torch.segmentation.field.field_mixture_evidence`); the chains sample s1 alone.
+Measured (``experiments/segmentation_variants.py``): s2 = 3 gains two of the 280 synthetic cases and loses none,
+keeps every LASA demonstration's count on 10 of 10 seeds, and changes nothing on the held-out families (one case
+gained, one lost); s1 = 3 alone gains more (8 of the 280 and 9 of the 80 held-out cases, mostly straight legs) but
+loses 3 single curved demonstrations and 3 held-out cases with four demonstrations: a shift of the prior toward
+straight fields, not a better model of both.
 
 Dwell (``dwell``, :mod:`lfd_torch.segmentation.dwell`, the derivation there). The path-length grid hides how long
 the demonstrator spends somewhere, and a pause is where one subtask ends and the next begins. The model also
@@ -298,6 +311,7 @@ HYPERPARAMETER_RANGES: dict[str, tuple[type, float, float, bool, bool]] = {
     "position_weight": (float, 0.0, 1.0, True, True),
     "straight_weight": (float, 0.0, 1.0, True, False),
     "slope_scale": (float, 0.0, 1e3, False, True),
+    "slope_scale_mix": (float, 0.0, 1e3, True, True),
     "tolerance_correlation": (float, 0.0, 1.0, True, False),
     "demo_offset": (float, 0.0, 1e3, True, True),
     "n_chains": (int, 1, 64, True, True),
@@ -360,6 +374,8 @@ class BetaProcessHMMSampler:
         extra_dof: nu0 - d - 1 of the field prior (its weight).
         slope_scale: prior standard deviation of a field's slope entries per radius of the data
             (:func:`~lfd_torch.segmentation.field.field_prior`).
+        slope_scale_mix: s >= 0: in the collapsed score, the affine fields' slope prior is an equal mixture of the
+            scales ``slope_scale`` and s (module docstring, "Slope scale"); 0: ``slope_scale`` alone.
         robust_dof: nu of the Student-t direction emission (None: Gaussian), see :mod:`.field`.
         position_weight: tau of the tempered position term of the emission (module docstring, "Position"), in
             [0, 1]; None: 1 / D, D the minimum duration in grid samples; 0: directions alone.
@@ -401,6 +417,7 @@ class BetaProcessHMMSampler:
         direction_noise: float = 0.2,
         extra_dof: float = 2.0,
         slope_scale: float = 1.0,
+        slope_scale_mix: float = 0.0,
         robust_dof: float | None = 4.0,
         position_weight: float | None = 0.0,
         position_mixture: bool = False,
@@ -421,7 +438,8 @@ class BetaProcessHMMSampler:
         check_hyperparameters(
             feature_mass=feature_mass, feature_concentration=feature_concentration,
             transition_concentration=transition_concentration, stickiness=stickiness,
-            direction_noise=direction_noise, extra_dof=extra_dof, slope_scale=slope_scale, robust_dof=robust_dof,
+            direction_noise=direction_noise, extra_dof=extra_dof, slope_scale=slope_scale,
+            slope_scale_mix=slope_scale_mix, robust_dof=robust_dof,
             position_weight=position_weight, position_mixture=position_mixture, straight_weight=straight_weight,
             tolerance_correlation=tolerance_correlation, dwell_pace=dwell_pace, demo_offset=demo_offset,
             n_chains=n_chains,
@@ -444,6 +462,7 @@ class BetaProcessHMMSampler:
         self.demo_offset = float(demo_offset)
         self.extra_dof = float(extra_dof)
         self.slope_scale = float(slope_scale)
+        self.slope_scale_mix = float(slope_scale_mix)
         self.n_chains = int(n_chains)
         self.n_iterations = int(n_iterations)
         self.burn_in = float(burn_in)
@@ -547,6 +566,10 @@ class _Run:
             prior = field_prior(self.d, direction_noise=cfg.direction_noise, extra_dof=cfg.extra_dof,
                                 slope_scale=cfg.slope_scale, dtype=self.dtype, device=self.device)
         self.prior = prior
+        # second slope scale of the affine slab in the collapsed score (module docstring, "Slope scale")
+        self.wide_prior = None if cfg.slope_scale_mix == 0 else field_prior(
+            self.d, direction_noise=cfg.direction_noise, extra_dof=cfg.extra_dof, slope_scale=cfg.slope_scale_mix,
+            dtype=self.dtype, device=self.device)
         self._set_tolerance(cfg.tolerance_correlation or 0.0)
         self.mass = torch.full((self.C,), cfg.feature_mass, dtype=self.dtype, device=self.device)
         self.alpha = torch.full((self.C,), cfg.transition_concentration, dtype=self.dtype, device=self.device)
@@ -585,6 +608,8 @@ class _Run:
         sigma = self.cfg.direction_noise if sigma is None else float(sigma)
         self.rho, self.sigma, self.tau_white = float(rho), sigma, float(tau)
         self.score_prior = correlated_tolerance_prior(self.prior, self.rho, sigma / self.cfg.direction_noise)
+        self.wide_score_prior = None if self.wide_prior is None else correlated_tolerance_prior(
+            self.wide_prior, self.rho, sigma / self.cfg.direction_noise)
         views = correlated_tolerance_observations(self.obs, self.rho, self.cfg.direction_noise, sigma, tau)
         n = self.N * self.T
         # (ages, n, .) every view stacked: a sample of age a in its run is seen in view a (:meth:`_score_view`)
@@ -639,7 +664,8 @@ class _Run:
     def _field_evidence(self, age: Tensor | None, w: Tensor, onehot: Tensor) -> Tensor:
         """(B, K) the states' field evidence (spike-and-slab, :func:`field_mixture_evidence`)."""
         stats, extra = self._field_terms(age, w, onehot)
-        return field_mixture_evidence(self.score_prior, *stats, self.cfg.straight_weight)[0] + extra
+        return field_mixture_evidence(self.score_prior, *stats, self.cfg.straight_weight,
+                                      self.wide_score_prior)[0] + extra
 
     def _rand(self, *shape: int) -> Tensor:
         return torch.rand(*shape, generator=self.gen, dtype=self.dtype, device=self.device)
@@ -1152,7 +1178,7 @@ class _Run:
         (nu + q_t) / 2), q_t the squared Mahalanobis residual."""
         nu, d = self.cfg.robust_dof, self.d
         mean, psi = field_mixture_posterior_mean(self.score_prior, *self._stats(age, w, onehot),
-                                                 self.cfg.straight_weight)
+                                                 self.cfg.straight_weight, self.wide_score_prior)
         B, n, K = onehot.shape
         prec = torch.cholesky_inverse(torch.linalg.cholesky(psi))  # (B, K, d, d)
         if age is None:
@@ -1707,7 +1733,7 @@ class _Run:
         if self.cfg.robust_dof is not None:
             w = w * self._profile_scales(age, w, onehot)
         field, noise = field_mixture_posterior_mean(self.score_prior, *self._stats(age, w, onehot),
-                                                    self.cfg.straight_weight)  # (B, K, d, p), (B, K, d, d)
+                                                    self.cfg.straight_weight, self.wide_score_prior)  # (B, K, d, p), (B, K, d, d)
         le, le_first = self._run_emissions(field[:, None], noise[:, None])  # (B, N, T, K)
         if self.tau > 0:
             post = niw_posterior(self.pos_prior, *self._position_statistics(onehot))
@@ -1755,7 +1781,7 @@ class _Run:
         if self.cfg.robust_dof is not None:
             w = w * self._profile_scales(age, w, onehot)
         mean, psi = field_mixture_posterior_mean(self.score_prior, *self._stats(age, w, onehot),
-                                                 self.cfg.straight_weight)
+                                                 self.cfg.straight_weight, self.wide_score_prior)
         return mean[0], psi[0]
 
     def _run_emissions(self, field: Tensor, noise: Tensor) -> tuple[Tensor, Tensor | None]:
