@@ -32,6 +32,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from lfd_torch.segmentation.synthetic import FAMILIES, HELD_OUT_FAMILIES
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -196,6 +198,7 @@ def markdown(summaries: list[dict[str, Any]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
+    torch.set_num_threads(1)  # only JSON is read here, but the package import brings torch's thread pool
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--tables", type=Path, default=TABLES, help="directory of the stored benchmark tables")
     ap.add_argument("--markdown", type=Path, default=None, help="also write the table to this file")

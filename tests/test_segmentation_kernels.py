@@ -466,6 +466,31 @@ def test_viterbi_matches_brute_force_enumeration_with_padding():
         assert got[b, n:].tolist() == [arg[-1]] * (T - n)
 
 
+def _directions_near_a_field(gen, n, slope):
+    """n directions (d = 2) near a constant one plus ``slope`` times the flipped positions, weights in [0.5, 1):
+    regressors z (n, 3), directions u (n, 2), weights w (n,) and their one-state statistics."""
+    from lfd_torch.segmentation.field import field_statistics
+
+    x = torch.randn(n, 2, generator=gen, dtype=F64)
+    z = torch.cat([x, torch.ones(n, 1, dtype=F64)], -1)
+    u = torch.tensor([0.8, 0.3], dtype=F64) + 0.1 * torch.randn(n, 2, generator=gen, dtype=F64) + slope * x.flip(-1)
+    w = torch.rand(n, generator=gen, dtype=F64) * 0.5 + 0.5
+    return z, u, w, field_statistics(z, u, w, torch.ones(n, 1, dtype=F64))
+
+
+def _spike_and_slab_draws(gen, prior, row_covariance, rho):
+    """M fields and noises from the MNIW of ``prior`` with row covariance (M, p, p), the slope set to 0 with
+    probability rho: the draws, the straight mask (M,)."""
+    from lfd_torch.segmentation.field import FieldPrior, sample_field
+
+    M, d = row_covariance.shape[0], prior.mean.shape[-2]
+    draws = FieldPrior(prior.mean.expand(M, d, d + 1), row_covariance, prior.dof.expand(M), prior.scale.expand(M, d, d))
+    b, noise = sample_field(draws, gen)
+    straight = torch.rand(M, generator=gen, dtype=F64) < rho
+    b = torch.where(straight[:, None, None], torch.cat([torch.zeros_like(b[..., :-1]), b[..., -1:]], -1), b)
+    return b, noise, straight
+
+
 def test_straight_or_affine_field_evidence_and_posterior_against_monte_carlo():
     """Spike-and-slab field prior (straight with probability rho, else affine): the evidence against the mean
     likelihood of 400,000 prior draws (a quarter of them with the slope set to 0 for rho = 0.25), P(straight | u)
@@ -473,24 +498,16 @@ def test_straight_or_affine_field_evidence_and_posterior_against_monte_carlo():
     sampling); the straight evidence is the affine one in the limit of a zero-variance slope prior."""
     from lfd_torch.segmentation.field import (
         FieldPrior, field_log_likelihood, field_log_marginal_likelihood, field_mixture_evidence,
-        field_mixture_posterior_mean, field_prior, field_statistics, sample_field, straight_field_prior,
+        field_mixture_posterior_mean, field_prior, straight_field_prior,
     )  # fmt: skip
 
     gen = torch.Generator().manual_seed(4)
     d, n, rho, M = 2, 4, 0.25, 400_000
     prior = field_prior(d, direction_noise=0.6, extra_dof=4.0)
-    x = torch.randn(n, d, generator=gen, dtype=F64)
-    z = torch.cat([x, torch.ones(n, 1, dtype=F64)], -1)
-    u = torch.tensor([0.8, 0.3], dtype=F64) + 0.1 * torch.randn(n, d, generator=gen, dtype=F64) + 0.2 * x.flip(-1)
-    w = torch.rand(n, generator=gen, dtype=F64) * 0.5 + 0.5
-    stats = field_statistics(z, u, w, torch.ones(n, 1, dtype=F64))
+    z, u, w, stats = _directions_near_a_field(gen, n, 0.2)
     ev, log_ps = field_mixture_evidence(prior, *stats, rho)
     mean, psi = field_mixture_posterior_mean(prior, *stats, rho)
-    draws = FieldPrior(prior.mean.expand(M, d, d + 1), prior.row_covariance.expand(M, d + 1, d + 1),
-                       prior.dof.expand(M), prior.scale.expand(M, d, d))  # fmt: skip
-    b, noise = sample_field(draws, gen)
-    straight = torch.rand(M, generator=gen, dtype=F64) < rho
-    b = torch.where(straight[:, None, None], torch.cat([torch.zeros_like(b[..., :-1]), b[..., -1:]], -1), b)
+    b, noise, straight = _spike_and_slab_draws(gen, prior, prior.row_covariance.expand(M, d + 1, d + 1), rho)
     loglik = field_log_likelihood(z, u, w, b, noise).sum(0)  # (M,)
     mc = torch.logsumexp(loglik, 0) - math.log(M)
     assert float(ev[0] + 0.5 * d * torch.log(w).sum()) == pytest.approx(float(mc), abs=0.03)
@@ -515,27 +532,20 @@ def test_two_slope_scales_evidence_and_posterior_against_monte_carlo():
     posterior-mean field and noise against Monte Carlo draws from that prior (straight with probability rho, else
     scale 1 or 3 with probability 1/2 each); with ``wide`` equal to ``prior`` nothing changes."""
     from lfd_torch.segmentation.field import (
-        FieldPrior, field_log_likelihood, field_log_marginal_likelihood, field_mixture_evidence,
-        field_mixture_posterior_mean, field_prior, field_statistics, sample_field, straight_field_prior,
+        field_log_likelihood, field_log_marginal_likelihood, field_mixture_evidence, field_mixture_posterior_mean,
+        field_prior, straight_field_prior,
     )  # fmt: skip
 
     gen = torch.Generator().manual_seed(4)
     d, n, rho, M = 2, 3, 0.25, 1_000_000
     prior = field_prior(d, direction_noise=0.6, extra_dof=4.0)
     wide = field_prior(d, direction_noise=0.6, extra_dof=4.0, slope_scale=3.0)
-    x = torch.randn(n, d, generator=gen, dtype=F64)
-    z = torch.cat([x, torch.ones(n, 1, dtype=F64)], -1)
-    u = torch.tensor([0.8, 0.3], dtype=F64) + 0.1 * torch.randn(n, d, generator=gen, dtype=F64) + 0.6 * x.flip(-1)
-    w = torch.rand(n, generator=gen, dtype=F64) * 0.5 + 0.5
-    stats = field_statistics(z, u, w, torch.ones(n, 1, dtype=F64))
+    z, u, w, stats = _directions_near_a_field(gen, n, 0.6)
     ev, log_ps = field_mixture_evidence(prior, *stats, rho, wide)
     mean, psi = field_mixture_posterior_mean(prior, *stats, rho, wide)
     pick_wide = torch.rand(M, generator=gen, dtype=F64) < 0.5
     row_cov = torch.where(pick_wide[:, None, None], wide.row_covariance, prior.row_covariance)
-    draws = FieldPrior(prior.mean.expand(M, d, d + 1), row_cov, prior.dof.expand(M), prior.scale.expand(M, d, d))
-    b, noise = sample_field(draws, gen)
-    straight = torch.rand(M, generator=gen, dtype=F64) < rho
-    b = torch.where(straight[:, None, None], torch.cat([torch.zeros_like(b[..., :-1]), b[..., -1:]], -1), b)
+    b, noise, straight = _spike_and_slab_draws(gen, prior, row_cov, rho)
     loglik = field_log_likelihood(z, u, w, b, noise).sum(0)  # (M,)
     mc = torch.logsumexp(loglik, 0) - math.log(M)
     weights = torch.softmax(loglik, 0)
