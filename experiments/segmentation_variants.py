@@ -35,6 +35,7 @@ from typing import Any
 import torch
 
 from lfd_torch.segmentation.synthetic import FAMILIES, HELD_OUT_FAMILIES
+from bench_segmentation import summarize_synthetic
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLES = ROOT / "results" / "tables"
@@ -126,18 +127,18 @@ def _segment_rows(table: dict[str, Any], name: str, families: dict[str, Any], op
     return rows
 
 
-def _share(rows: list[dict], n_demos: int | None = None) -> float:
-    rs = [r for r in rows if n_demos is None or r["n_demos"] == n_demos]
-    return sum(bool(r["all_switches"]) for r in rs) / len(rs)
+def _shares(rows: list[dict]) -> dict[Any, float]:
+    """Every-switch share of the cases per demonstration count (1, 4) and over all ("all"), from the benchmark's
+    own summary."""
+    return {r["n_demos"]: r["all_switches"] for r in summarize_synthetic(rows)["totals"]}
 
 
 def rows_below_bar(rows: list[dict], bar: int = ROW_BAR) -> list[tuple[str, int, int]]:
-    """(family, n_demos, cases with every switch) of the family rows below ``bar`` of their cases, in table order."""
-    counts: dict[tuple[str, int], int] = {}
-    for r in rows:
-        key = (r["family"], r["n_demos"])
-        counts[key] = counts.get(key, 0) + bool(r["all_switches"])
-    return [(f, n, k) for (f, n), k in counts.items() if k < bar]
+    """(family, n_demos, cases with every switch) of the family rows (10 cases each) below ``bar`` of their cases, in
+    table order, from the benchmark's own per-family summary."""
+    found = [(r["family"], r["n_demos"], round(r["all_switches"] * r["cases"]))
+             for r in summarize_synthetic(rows)["per_family"]]
+    return [(f, n, k) for f, n, k in found if k < bar]
 
 
 def lasa_summary(table: dict[str, Any], name: str, options: dict[str, Any]) -> dict[str, Any]:
@@ -159,11 +160,12 @@ def summarize(variant: Variant, tables: Path = TABLES) -> dict[str, Any]:
     if variant.synthetic:
         table = _load(tables, variant.synthetic)
         rows = _segment_rows(table, variant.synthetic, FAMILIES, variant.options)
-        out.update(every=_share(rows), every_1=_share(rows, 1), every_4=_share(rows, 4), below=rows_below_bar(rows),
+        shares = _shares(rows)
+        out.update(every=shares["all"], every_1=shares[1], every_4=shares[4], below=rows_below_bar(rows),
                    commit=str(table["provenance"].get("git_sha", "?"))[:7])
     if variant.held_out:
         rows = _segment_rows(_load(tables, variant.held_out), variant.held_out, HELD_OUT_FAMILIES, variant.options)
-        out["held_out"] = _share(rows)
+        out["held_out"] = _shares(rows)["all"]
     if variant.lasa:
         out["lasa"] = lasa_summary(_load(tables, variant.lasa), variant.lasa, variant.options)
     return out
