@@ -46,21 +46,31 @@ def captured_runs():
         sampler_module._Run.sample = original
 
 
-def score_gap(family: str, seed: int, n_demos: int = 1, n_steps: int | None = None, **options) -> dict:
-    """Steps and collapsed scores of the returned and the true labelling of one case (``n_steps``: the family drawn
-    with that many legs, as ``bench_segmentation.py --n-steps``)."""
+def case_labellings(family: str, seed: int, n_demos: int = 1, n_steps: int | None = None, **options):
+    """One benchmark case segmented with ``options``: the Segmentation, the sampler run it made and the true
+    labelling (N, T) on the run's grid (grid point j of demonstration i labelled with the true step of its
+    full-rate sample; true step m is state m; padding repeats the last label). ``n_steps``: the family drawn with
+    that many legs, as ``bench_segmentation.py --n-steps``."""
     overrides = {} if n_steps is None else {"n_steps": n_steps}
     syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n_demos, **overrides)
     with captured_runs() as runs:
         seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), **options)
-    run, res = runs[-1], seg.sampler
+    run = runs[-1]
     M = int(syn.switch_times.shape[1]) + 1
-    truth = torch.zeros(run.N, run.T, dtype=torch.long)  # true step m is state m in every demonstration
+    truth = torch.zeros(run.N, run.T, dtype=torch.long)
     for i in range(run.N):
         grid = torch.tensor(seg.info["grid"][i])
         steps = (grid.unsqueeze(-1) >= syn.switch_times[i].unsqueeze(0)).sum(-1)  # (n_i,) true step of each point
-        truth[i] = M - 1  # padding repeats the last label
+        truth[i] = M - 1
         truth[i, : grid.numel()] = steps
+    return seg, run, truth
+
+
+def score_gap(family: str, seed: int, n_demos: int = 1, n_steps: int | None = None, **options) -> dict:
+    """Steps and collapsed scores of the returned and the true labelling of one case (:func:`case_labellings`)."""
+    seg, run, truth = case_labellings(family, seed, n_demos, n_steps, **options)
+    res = seg.sampler
+    M = int(truth.max()) + 1
     features = torch.ones(run.N, M, dtype=torch.bool)
     hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
              for k in ("transition_concentration", "stickiness", "feature_mass")]

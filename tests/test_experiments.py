@@ -283,6 +283,35 @@ def test_diagnose_segmentation_scores_the_returned_labelling_as_the_sampler_does
     assert set(r["gap_parts"]) == {"emission", "dwell", "transitions", "initial", "features"}
 
 
+def test_diagnose_convergent_fields_affine_part_is_the_sampler_field_evidence():
+    """``diagnose_convergent_fields``: its affine spike-and-slab evidence of a labelling (per state, from its own
+    statistics) is the sampler's Gaussian field evidence of that labelling (``robust_dof=None``, white tolerance),
+    for the returned and the true labelling; each state's attractor g_k is the mean of its runs' last grid points,
+    found here with a loop; the convergent evidence is finite and differs from the affine one."""
+    import diagnose_convergent_fields as conv
+    import diagnose_segmentation as diag
+
+    seg, run, truth = diag.case_labellings("straight_const_2d", 0, 1, robust_dof=None)
+    for s in (seg.sampler.states, truth):
+        K = int(s.max()) + 1
+        onehot = (torch.nn.functional.one_hot(s, K).to(run.dtype) * run.valid.unsqueeze(-1)).reshape(1, -1, K)
+        age, w, _ = run._score_view(s[None])
+        want = float(run._field_evidence(age, w, onehot).sum())
+        got = conv.field_evidence(run, s, 0.05)
+        assert got["affine"] == pytest.approx(want, abs=1e-8)
+        assert math.isfinite(got["convergent"]) and abs(got["convergent"] - got["affine"]) > 1e-3
+        ends = {}
+        for i in range(run.N):
+            n = int(run.lengths[i])
+            for t in range(n):
+                if t == n - 1 or int(s[i, t + 1]) != int(s[i, t]):
+                    ends.setdefault(int(s[i, t]), []).append(run.obs.z[i, t, : run.d])
+        g = conv.attractors(run, s)
+        assert sorted(g) == sorted(ends)
+        for k, pts in ends.items():
+            assert torch.allclose(g[k], torch.stack(pts).mean(0))
+
+
 def test_diagnose_position_cut_gain_is_the_sampler_position_score():
     """``diagnose_position.cut_gain`` of the L-shaped path is the sampler's position evidence, recomputed here from
     the NIW kernel with the sampler's standardisation and the two labellings written out by hand (the mixture form
