@@ -1198,6 +1198,7 @@ def test_map_search_polished_split_reaches_the_mode_the_split_alone_misses(monke
     demonstration of the route and a higher collapsed score: a better mode of the same posterior."""
     from lfd_torch.data import load_lasa
 
+    steps = sampler_module._POLISH_STEPS
     monkeypatch.setattr(sampler_module, "_POLISH_STEPS", 0)
     runs = capture_runs(monkeypatch)
     seg = segment(load_lasa("Multi_Models_1"), generator=torch.Generator().manual_seed(0), tolerance_correlation=None)
@@ -1209,7 +1210,7 @@ def test_map_search_polished_split_reaches_the_mode_the_split_alone_misses(monke
 
     before = runs_of(res.states)
     assert before[:3] == [4, 4, 4], before
-    monkeypatch.setattr(sampler_module, "_POLISH_STEPS", 20)
+    monkeypatch.setattr(sampler_module, "_POLISH_STEPS", steps)
     snap = {"states": res.states, "features": res.features, "hyper": res.hyperparameters}
     after = run._climb_to_mode(snap, shifts=True)
     assert runs_of(after["states"])[:3] == [5, 5, 5], runs_of(after["states"])
