@@ -310,6 +310,34 @@ def test_diagnose_convergent_fields_affine_part_is_the_sampler_field_evidence():
         assert sorted(g) == sorted(ends)
         for k, pts in ends.items():
             assert torch.allclose(g[k], torch.stack(pts).mean(0))
+        # the convergent part, assembled here per state from regressors built sample by sample: the spike (offset
+        # regressor) and the slab (the softened unit vector from g_k, prior mean -I, the slope block of the prior)
+        from lfd_torch.segmentation.field import FieldPrior, field_log_marginal_likelihood, straight_field_prior
+
+        d, eps, total = run.d, 0.05, 0.0
+        slab = FieldPrior(mean=-torch.eye(d, dtype=run.dtype), row_covariance=run.prior.row_covariance[:d, :d],
+                          dof=run.prior.dof, scale=run.prior.scale)
+        for k, pts in ends.items():
+            gk = torch.stack(pts).mean(0)
+            zs, cs, us, ws = [], [], [], []
+            for i in range(run.N):
+                for t in range(int(run.lengths[i])):
+                    if int(s[i, t]) == k:
+                        r = run.obs.z[i, t, :d] - gk
+                        zs.append(run.obs.z[i, t, d:])
+                        cs.append(r / math.sqrt(float(r @ r) + eps**2))
+                        us.append(run.obs.u[i, t])
+                        ws.append(float(run.obs.w[i, t]))
+            w_ = torch.tensor(ws, dtype=run.dtype)
+
+            def evidence(prior, x, u=torch.stack(us)):
+                xw = x * w_.unsqueeze(-1)
+                return field_log_marginal_likelihood(prior, torch.tensor(float(len(ws)), dtype=run.dtype),
+                                                     xw.T @ x, (u * w_.unsqueeze(-1)).T @ x,
+                                                     (u * w_.unsqueeze(-1)).T @ u)
+            spike = math.log(0.5) + evidence(straight_field_prior(run.prior), torch.stack(zs))
+            total += float(torch.logaddexp(spike, math.log(0.5) + evidence(slab, torch.stack(cs))))
+        assert got["convergent"] == pytest.approx(total, abs=1e-8)
 
 
 def test_diagnose_position_cut_gain_is_the_sampler_position_score():
