@@ -1192,16 +1192,17 @@ def test_map_search_shift_move_removes_a_run_its_fields_held_in_place(monkeypatc
 def test_map_search_polished_split_reaches_the_mode_the_split_alone_misses(monkeypatch):
     """The polished split of the map search (``_Run._climb_to_mode``: when no split raises the score, the best
     relabelled split, its switches moved by shift moves while they raise its score, kept when it ends above the
-    current labelling), on the case that motivated it (LASA Multi_Models_1, all 7 demonstrations,
-    ``tolerance_correlation=None``, sampler seed 0). Without it the search returns route {0-2} in 4 steps; the
-    ascent with it, from that labelling under the same hyperparameters and tolerance, reaches 5 steps on every
-    demonstration of the route and a higher collapsed score: a better mode of the same posterior."""
+    current labelling), on a case of the kind that motivated it (LASA Multi_Models_1, all 7 demonstrations,
+    ``tolerance_correlation=None``, sampler seed 2; seed 0 before the relabelling was iterated first). Without it
+    the search returns route {0-2} in 4 steps; the ascent with it, from that labelling under the same
+    hyperparameters and tolerance, reaches 5 steps on every demonstration of the route and a higher collapsed
+    score: a better mode of the same posterior."""
     from lfd_torch.data import load_lasa
 
     steps = sampler_module._POLISH_STEPS
     monkeypatch.setattr(sampler_module, "_POLISH_STEPS", 0)
     runs = capture_runs(monkeypatch)
-    seg = segment(load_lasa("Multi_Models_1"), generator=torch.Generator().manual_seed(0), tolerance_correlation=None)
+    seg = segment(load_lasa("Multi_Models_1"), generator=torch.Generator().manual_seed(2), tolerance_correlation=None)
     run, res = runs[-1], seg.sampler
 
     def runs_of(states):

@@ -1389,12 +1389,15 @@ class _Run:
         """``selection="map"``: coordinate ascent of the collapsed score from a sample (module docstring).
 
         Moves, each kept only when the collapsed score :meth:`_collapsed_score` rises, repeated until none does (a
-        local mode of p(s, F | u, z)):
+        local mode of p(s, F | u, z)). Each round tries them in the order below and starts the next round as soon
+        as one is kept, so the relabelling, the cheapest move and the one kept most often, is iterated to its fixed
+        point before any of the costlier moves, whose candidates are scored by the hundred, is tried (order and
+        measurements: ``experiments/segmentation_studies.md``, "Order of the moves"):
+            relabel: the Viterbi state sequences of every sequence under the posterior means of the fields, noise
+                and transition weights given the current labelling (features it owns but no longer uses dropped);
             merge: all K (K - 1) / 2 merges of a pair of states (the runs of k relabelled j, f_j <- f_j or f_k, slot
                 k dropped) scored in one batched call, the best one taken; when none raises the score, the
                 ``_LOOKAHEAD`` best are tried once more with a relabelling after them (two moves as one);
-            relabel: the Viterbi state sequences of every sequence under the posterior means of the fields, noise
-                and transition weights given the current labelling (features it owns but no longer uses dropped);
             reassign: in one sequence, the runs of one state given to another state or to a new one (the best of all
                 such moves, scored in one batched call as the current score plus the change of the terms the move
                 touches, :meth:`_reassignment_scores`, then confirmed by the full score): the partial merges and
@@ -1446,7 +1449,7 @@ class _Run:
                 if bool(sc > score):
                     s, F, score, moved = s2, F2, sc, True
             K = F.shape[-1]
-            if K >= 2:
+            if K >= 2 and not moved:
                 pairs = torch.combinations(torch.arange(K, device=self.device), 2)  # (P, 2), j < k
                 j, k = pairs[:, 0].view(-1, 1, 1), pairs[:, 1].view(-1, 1, 1)
                 P = pairs.shape[0]
@@ -1470,7 +1473,7 @@ class _Run:
                         if bool(sc2 > score):
                             s, F, score, moved = s2, F2, sc2, True
                             break
-            cand = self._reassignments(s, F)
+            cand = self._reassignments(s, F) if not moved else None
             if cand is not None:
                 sc = self._reassignment_scores(s, F, *cand, score, hyper)
                 b = int(torch.argmax(sc))
