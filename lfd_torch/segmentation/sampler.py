@@ -40,11 +40,11 @@ defaults to "map" with the position term, straight states, the dwell term and le
         of the count under 0-1 loss, which averages over the posterior instead of following its best draw.
         Measured: it shares the collapsed choice's bias (same file).
     "map": a local mode of the collapsed posterior p(s, F | u, z): from every chain's best collapsed sample, a
-        coordinate ascent of the collapsed score (merge two states, alone or followed by a relabelling; reassign one
-        state's runs in one sequence to another or a new state; Viterbi relabelling under the posterior-mean
-        parameters; as a last resort, split one state by cutting its runs in halves, then relabel (in the last
-        ascent, the best such split also polished by switch moves);
-        :meth:`_Run._climb_to_mode`), then from the best of the chains' results the same ascent with one more move
+        coordinate ascent of the collapsed score (Viterbi relabelling under the posterior-mean parameters, iterated
+        until it stops raising the score before any other move is tried; merge two states, alone or followed by a
+        relabelling; reassign one state's runs in one sequence to another or a new state; as a last resort, split
+        one state by cutting its runs in halves, then relabel (in the last ascent, the best such split also
+        polished by switch moves); :meth:`_Run._climb_to_mode`), then from the best of the chains' results the same ascent with one more move
         (move one switch of one sequence, or remove one run and place the switch between its neighbours), returned
         with the posterior-mean fields of its labelling. The merge is
         the move of split-merge samplers for the BP-HMM (Hughes, Fox & Sudderth 2012): it leaves a mode in which one
