@@ -248,6 +248,7 @@ _NEG_INF = float("-inf")
 _LOOKAHEAD = 4  # map search: merges tried with a relabelling after them when no merge alone raises the score
 _SHIFT_CHUNK = 512  # map search: shift candidates scored per batch (memory ~ chunk x N T x 3)
 _POLISH_STEPS = 3  # map search: most shift moves that polish the best split (each ~0.1 s on 7 LASA demonstrations)
+_SETTLE_STEPS = 10  # map search: most relabellings that settle the best look-ahead merge (each ~10 ms on 7 LASA demos)
 _POSITION_SCALE = 0.05  # prior expected covariance of a state's positions / the data's variance, per axis
 _BLOCK = 2  # features whose flips share one batched forward pass (2^2 - 1 = 3 variants per sequence)
 
@@ -1397,7 +1398,13 @@ class _Run:
                 and transition weights given the current labelling (features it owns but no longer uses dropped);
             merge: all K (K - 1) / 2 merges of a pair of states (the runs of k relabelled j, f_j <- f_j or f_k, slot
                 k dropped) scored in one batched call, the best one taken; when none raises the score, the
-                ``_LOOKAHEAD`` best are tried once more with a relabelling after them (two moves as one);
+                ``_LOOKAHEAD`` best are tried once more with a relabelling after them (two moves as one); in the
+                chains' ascents (without ``shifts``), when none of those does either, the best of them relabelled on
+                while that raises its own score (at most ``_SETTLE_STEPS`` times, :meth:`_settle`): a merge judged
+                once the relabelling has settled, as the ascent judges every other move (LASA Sshape, sampler seed
+                0: a merge that needs 5 relabellings to rise above a 6-state mode, and 5 steps instead of 6; only
+                in the chains' ascents because the last ascent, whose rounds mostly end in a shift, would repeat it
+                in every round, 1-3 s per LASA run, measured);
             reassign: in one sequence, the runs of one state given to another state or to a new one (the best of all
                 such moves, scored in one batched call as the current score plus the change of the terms the move
                 touches, :meth:`_reassignment_scores`, then confirmed by the full score): the partial merges and
@@ -1469,10 +1476,15 @@ class _Run:
                     top = torch.argsort(sc, descending=True)[:_LOOKAHEAD]
                     relabelled = self._viterbi_relabel_batch(cand_s[top], cand_f[top], float(hyper[0]),
                                                              float(hyper[1]))
-                    for s2, F2, sc2 in zip(*relabelled, self._scores_by_width(relabelled, score_of)):
+                    looked = list(zip(*relabelled, self._scores_by_width(relabelled, score_of)))
+                    for s2, F2, sc2 in looked:
                         if bool(sc2 > score):
                             s, F, score, moved = s2, F2, sc2, True
                             break
+                    if not moved and not shifts:  # the best of them relabelled on while that raises its score
+                        s2, F2, sc2 = self._settle(*looked[0], hyper, score_of)
+                        if bool(sc2 > score):
+                            s, F, score, moved = s2, F2, sc2, True
             cand = self._reassignments(s, F) if not moved else None
             if cand is not None:
                 sc = self._reassignment_scores(s, F, *cand, score, hyper)
@@ -1515,6 +1527,20 @@ class _Run:
         field, noise = self._posterior_mean_fields(s, F.shape[-1])
         return {**snap, "states": s, "features": F, "field": field, "noise": noise, "joint": math.nan,
                 "collapsed": float(score)}
+
+    def _settle(self, s: Tensor, F: Tensor, score: Tensor, hyper: list[Tensor], score_of
+                ) -> tuple[Tensor, Tensor, Tensor]:
+        """(s, F) of collapsed score ``score`` relabelled (:meth:`_viterbi_relabel`) while that raises its score, at
+        most ``_SETTLE_STEPS`` times: the labelling and score where the relabelling stops."""
+        for _ in range(_SETTLE_STEPS):
+            s2, F2 = self._viterbi_relabel(s, F, float(hyper[0]), float(hyper[1]))
+            if torch.equal(s2, s) and torch.equal(F2, F):
+                break
+            sc2 = score_of(s2[None], F2[None])[0]
+            if not bool(sc2 > score):
+                break
+            s, F, score = s2, F2, sc2
+        return s, F, score
 
     def _shift_step(self, s: Tensor, F: Tensor, score: Tensor, hyper: list[Tensor], score_of
                     ) -> tuple[Tensor, Tensor, Tensor] | None:
