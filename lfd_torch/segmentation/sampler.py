@@ -44,10 +44,10 @@ defaults to "map" with the position term, straight states, the dwell term and le
         until it stops raising the score before any other move is tried; merge two states, alone or followed by a
         relabelling; reassign one state's runs in one sequence to another or a new state; as a last resort, split
         one state by cutting its runs in halves, then relabel (in the last ascent, the best such split also
-        polished by switch moves); :meth:`_Run._climb_to_mode`), then from the best of the chains' results the same ascent with one more move
-        (move one switch of one sequence, or remove one run and place the switch between its neighbours), returned
-        with the posterior-mean fields of its labelling. The merge is
-        the move of split-merge samplers for the BP-HMM (Hughes, Fox & Sudderth 2012): it leaves a mode in which one
+        polished by switch moves); :meth:`_Run._climb_to_mode`), then from the best of the chains' results the same
+        ascent with one more move (move one switch of one sequence, or remove one run and place the switch between
+        its neighbours), returned with the posterior-mean fields of its labelling. The merge is the move of
+        split-merge samplers for the BP-HMM (Hughes, Fox & Sudderth 2012): it leaves a mode in which one
         step is carried by two states, which the one-feature-at-a-time moves cannot join. Taken greedily, as a mode
         search, chains that reached one basin end at one labelling. Alone it under-segments single
         demonstrations (a field across a mild corner beats two); the position term, straight states and the dwell
@@ -1399,13 +1399,14 @@ class _Run:
             merge: all K (K - 1) / 2 merges of a pair of states (the runs of k relabelled j, f_j <- f_j or f_k, slot
                 k dropped) scored in one batched call, the best one taken; when none raises the score, the
                 ``_LOOKAHEAD`` best are tried once more with a relabelling after them (two moves as one); in the
-                chains' ascents (without ``shifts``), when none of those does either, the best of them relabelled on
-                while that raises its own score (at most ``_SETTLE_STEPS`` times, :meth:`_settle`): a merge judged
-                once the relabelling has settled, as the ascent judges every other move (LASA Sshape, sampler seed
-                0: a merge that needs 5 relabellings to rise above a 6-state mode, and 5 steps instead of 6; only
-                in the chains' ascents because the last ascent, whose rounds mostly end in a shift, would repeat it
-                in every round: settling all ``_LOOKAHEAD`` merges in every ascent cost 0.7-3.4 s per LASA run of 7
-                demonstrations, the best one in the chains' ascents 0.04-0.24 s, one-off measurements);
+                chains' ascents (without ``shifts``), when none of those does either, the first of them (the best
+                merge by its own score) relabelled on while that raises its score (at most ``_SETTLE_STEPS`` times,
+                :meth:`_settle`): a merge judged once the relabelling has settled, as the ascent judges every other
+                move (LASA Sshape, sampler seed 0: a merge that needs 5 relabellings to rise above a 6-state mode,
+                and 5 steps instead of 6; only in the chains' ascents because the last ascent, whose rounds mostly
+                end in a shift, would repeat it in every round: settling all ``_LOOKAHEAD`` merges in every ascent
+                cost 0.7-3.4 s per LASA run of 7 demonstrations, the first one in the chains' ascents 0.04-0.24 s,
+                one-off measurements);
             reassign: in one sequence, the runs of one state given to another state or to a new one (the best of all
                 such moves, scored in one batched call as the current score plus the change of the terms the move
                 touches, :meth:`_reassignment_scores`, then confirmed by the full score): the partial merges and
@@ -1482,7 +1483,7 @@ class _Run:
                         if bool(sc2 > score):
                             s, F, score, moved = s2, F2, sc2, True
                             break
-                    if not moved and not shifts:  # the best of them relabelled on while that raises its score
+                    if not moved and not shifts:  # the first of them relabelled on while that raises its score
                         s2, F2, sc2 = self._settle(*looked[0], hyper, score_of)
                         if bool(sc2 > score):
                             s, F, score, moved = s2, F2, sc2, True
