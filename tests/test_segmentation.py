@@ -155,6 +155,14 @@ def capture_runs(monkeypatch) -> list:
     return runs
 
 
+def collapsed_score(run, res: SamplerResult, s: torch.Tensor, F: torch.Tensor) -> float:
+    """The sampler run's collapsed score of the labelling s (N, T) with features F (N, K) under the transition and
+    feature hyperparameters of the result ``res``."""
+    hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
+             for k in ("transition_concentration", "stickiness", "feature_mass")]
+    return float(run._collapsed_score(s[None], F[None], sampler_module.duration_phases(s[None], run.D), *hyper)[0])
+
+
 def _blind_result(sequences: list[torch.Tensor], labeller) -> SamplerResult:
     """A SamplerResult whose states come from ``labeller(t, T_i)`` and whose fields are all equal (no data used)."""
     N, d = len(sequences), sequences[0].shape[1]
@@ -1179,13 +1187,8 @@ def test_map_search_shift_move_removes_a_run_its_fields_held_in_place(monkeypatc
     monkeypatch.setattr(sampler_module._Run, "_shifts", lambda self, s, F: None)
     without = segment(syn.demos, generator=torch.Generator().manual_seed(0))
     assert len(seg.switches(0)) == 1 and len(without.switches(0)) == 2, (seg.switches(0), without.switches(0))
-    hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
-             for k in ("transition_concentration", "stickiness", "feature_mass")]
-
-    def score(s, F):
-        return float(run._collapsed_score(s[None], F[None], sampler_module.duration_phases(s[None], run.D), *hyper)[0])
-
-    gap = score(res.states, res.features) - score(without.sampler.states, without.sampler.features)
+    gap = (collapsed_score(run, res, res.states, res.features)
+           - collapsed_score(run, res, without.sampler.states, without.sampler.features))
     assert gap > 1.0, gap
 
 
@@ -1275,13 +1278,8 @@ def test_map_search_settled_lookahead_merge_reaches_the_mode_one_relabelling_mis
     without = segment(demos, generator=torch.Generator().manual_seed(0))
     assert [len(seg.step_sequence(i)) for i in range(7)] == [5] * 7
     assert [len(without.step_sequence(i)) for i in range(7)] == [6] * 7
-    hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
-             for k in ("transition_concentration", "stickiness", "feature_mass")]
-
-    def score(s, F):
-        return float(run._collapsed_score(s[None], F[None], sampler_module.duration_phases(s[None], run.D), *hyper)[0])
-
-    gap = score(res.states, res.features) - score(without.sampler.states, without.sampler.features)
+    gap = (collapsed_score(run, res, res.states, res.features)
+           - collapsed_score(run, res, without.sampler.states, without.sampler.features))
     assert gap > 1.0, gap
 
 
