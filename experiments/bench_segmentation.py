@@ -66,6 +66,14 @@ was added after every default was set:
         --families rounded_const_2d rounded_const_3d rounded_vary_2d rounded_vary_3d \
         --json results/tables/bench_segmentation_held_out.json
 
+``--noise-scale S`` gives every case new white position noise of S times its level (the same paths; with
+``--noise-correlation``, AR(1) noise of that level): at S = 0.1 a sensor ten times better, which tells a miss that
+the data's noise makes from one that the model makes on any data:
+
+    OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts synthetic --method segment \
+        --families straight_const_3d curved_const_2d curved_const_3d scoop_const_3d --noise-scale 0.1 --jobs 2 \
+        --json results/tables/bench_segmentation_noise_scale01.json
+
 ``--rate HZ`` records every case at HZ instead of 100 Hz (:func:`lfd_torch.segmentation.synthetic.with_sampling_rate`:
 the same motions and durations, new white noise of the same level per sample), a sensor slower or faster than the
 one the families were drawn for: at 10 Hz a demonstration has 35-120 samples, at 500 Hz 1746-5971. The baselines
@@ -342,20 +350,23 @@ def map_cases(fn: Callable[[Any], Any], tasks: list[Any], jobs: int = 1):
         yield from pool.map(fn, tasks)
 
 
-def _synthetic_case(task: tuple[str, int, int, tuple[str, ...], float | None, int | None, float | None]
-                    ) -> list[dict[str, Any]]:  # fmt: skip
+def _synthetic_case(task: tuple[str, int, int, tuple[str, ...], float | None, int | None, float | None,
+                                float | None]) -> list[dict[str, Any]]:  # fmt: skip
     """The rows of one (family, n_demos, seed) case, one per method (recorded at ``rate`` Hz instead of 100 when
     rate is not None, :func:`with_sampling_rate`, new white noise seeded data seed + 2; AR(1) noise of lag-one
     correlation rho instead of the white noise when rho is not None, :func:`with_correlated_noise`, seeded data
-    seed + 1; M legs instead of the drawn number when n_steps is not None)."""
-    family, n, seed, methods, rho, n_steps, rate = task
+    seed + 1; that noise, white unless rho is given, at noise_scale times the level when noise_scale is not None;
+    M legs instead of the drawn number when n_steps is not None)."""
+    family, n, seed, methods, rho, n_steps, rate, noise_scale = task
     torch.set_num_threads(1)
     overrides = {} if n_steps is None else {"n_steps": n_steps}
     syn = ALL_FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n, **overrides)
     if rate is not None:
         syn = with_sampling_rate(syn, rate, torch.Generator().manual_seed(data_seed(family, seed) + 2))
-    if rho is not None:
-        syn = with_correlated_noise(syn, rho, torch.Generator().manual_seed(data_seed(family, seed) + 1))
+    if rho is not None or noise_scale is not None:
+        syn = with_correlated_noise(syn, 0.0 if rho is None else rho,
+                                    torch.Generator().manual_seed(data_seed(family, seed) + 1),
+                                    1.0 if noise_scale is None else noise_scale)
     rows = []
     for method in methods:
         t0 = time.perf_counter()
@@ -382,17 +393,20 @@ def synthetic_study(
     noise_correlation: float | None = None,
     n_steps: int | None = None,
     rate: float | None = None,
+    noise_scale: float | None = None,
 ) -> list[dict[str, Any]]:
     """One row per (method, family, n_demos, seed); the data of a (family, seed) share the nominal path. ``jobs``
     worker processes (one thread each) share the cases; the rows, in the same order, do not depend on it (the wall
     times do: with two workers on two cores each case runs as it would alone). ``noise_correlation``: AR(1) noise
     of that lag-one correlation, same marginal level, instead of each family's white noise. ``n_steps``: that many
     legs instead of 3-5 (straight and curved families only). ``rate``: the demonstrations recorded at that many Hz
-    instead of 100, same noise per sample."""
+    instead of 100, same noise per sample. ``noise_scale``: new noise at that multiple of each case's level."""
     families = tuple(FAMILIES) if families is None else families
     if n_steps is not None and not all(f.startswith(("straight_", "curved_")) for f in families):
         raise SystemExit("--n-steps applies to the straight_* and curved_* families only (--families)")
-    tasks = [(family, n, seed, methods, noise_correlation, n_steps, rate)
+    if noise_scale is not None and not (math.isfinite(noise_scale) and noise_scale > 0):
+        raise SystemExit(f"--noise-scale must be a positive number, got {noise_scale}")
+    tasks = [(family, n, seed, methods, noise_correlation, n_steps, rate, noise_scale)
              for family in families for n in n_demos for seed in range(seeds)]
     rows = []
     for case_rows in map_cases(_synthetic_case, tasks, jobs):
@@ -477,6 +491,8 @@ def main() -> None:
     parser.add_argument("--rate", type=float, default=None, metavar="HZ",
                         help="synthetic part: the demonstrations recorded at HZ instead of 100 Hz (same durations, "
                              "white noise of the same level per sample)")
+    parser.add_argument("--noise-scale", type=float, default=None, metavar="S",
+                        help="synthetic part: new position noise at S times each case's level (same paths)")
     parser.add_argument("--json", type=str, default=None, help="write all rows to this JSON file")
     parser.add_argument("--segment-option", nargs="+", default=[], metavar="KEY=VALUE",
                         help="segment() keyword arguments of the segment methods (numbers, or None), e.g. extra_dof=2")
@@ -504,7 +520,7 @@ def main() -> None:
               f"max {max(r['other_max'] for r in rows_m):.3f}")  # fmt: skip
     if "synthetic" in args.parts:
         rows = synthetic_study(args.seeds, tuple(args.method), tuple(args.families), tuple(args.n_demos), args.jobs,
-                               args.noise_correlation, args.n_steps, args.rate)
+                               args.noise_correlation, args.n_steps, args.rate, args.noise_scale)
         summary = summarize_synthetic(rows)
         result["synthetic"] = rows
         result["synthetic_summary"] = summary
@@ -512,6 +528,7 @@ def main() -> None:
             "tolerance": TOLERANCE, "savgol_window": SAVGOL_WINDOW, "penalty_c": PENALTY_C,
             "hmm_states": list(HMM_STATES), "seeds": args.seeds, "n_demos": args.n_demos,
             "noise_correlation": args.noise_correlation, "n_steps": args.n_steps, "rate": args.rate,
+            "noise_scale": args.noise_scale,
         }  # fmt: skip
         print()
         _print(summary["per_family"])

@@ -119,7 +119,7 @@ def _segment_rows(table: dict[str, Any], name: str, families: dict[str, Any], op
     under the default benchmark settings and ``options``."""
     _same_options(table.get("provenance", {}).get("segment_options", {}), options, name)
     settings = table.get("synthetic_settings", {})
-    for key in ("noise_correlation", "n_steps", "rate"):
+    for key in ("noise_correlation", "n_steps", "rate", "noise_scale"):
         if settings.get(key) is not None:
             raise TableMismatch(f"table {name!r} is not the default benchmark: {key}={settings[key]}")
     rows = [r for r in table.get("synthetic", []) if r["method"] == "segment"]

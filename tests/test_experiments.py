@@ -237,6 +237,19 @@ def test_correlated_noise_cases_share_the_paths_of_the_white_ones():
     assert white[0]["noise_fraction"] == ar1[0]["noise_fraction"]
 
 
+def test_noise_scale_cases_share_the_paths_and_record_the_new_level():
+    """``synthetic_study(noise_scale=s)``: the same paths and switches as the default cases, the recorded noise level
+    s times theirs; a level that is not positive is refused before any case runs."""
+    import bench_segmentation as bench
+
+    kw = dict(seeds=1, methods=("ruptures",), families=("straight_const_2d",), n_demos=(1,))
+    plain, quiet = bench.synthetic_study(**kw), bench.synthetic_study(**kw, noise_scale=0.1)
+    assert plain[0]["true_switches"] == quiet[0]["true_switches"] and plain[0]["lengths"] == quiet[0]["lengths"]
+    assert quiet[0]["noise_fraction"] == pytest.approx(0.1 * plain[0]["noise_fraction"], rel=1e-12)
+    with pytest.raises(SystemExit, match="noise-scale"):
+        bench.synthetic_study(**kw, noise_scale=0.0)
+
+
 def test_held_out_families_run_through_the_synthetic_study():
     """``--families`` takes the held-out families (``HELD_OUT_FAMILIES``): their rows carry the rounded generator's
     truth (the drawn switches), and the default family list stays the 14 benchmark families."""

@@ -81,7 +81,7 @@ def test_position_noise_model_keeps_the_white_estimate_for_white_noise_and_smoot
 
 def test_with_correlated_noise_has_the_asked_correlation_and_level():
     """Property: the new noise of a family draw has lag-one autocorrelation rho (within 0.05) and the family's
-    level (within 10 %); the noise-free paths and the switches are those of the draw."""
+    level (within 10 %), or ``scale`` times it; the noise-free paths and the switches are those of the draw."""
     syn = FAMILIES["straight_dwell_2d"](torch.Generator().manual_seed(0), 4)
     out = with_correlated_noise(syn, 0.6, torch.Generator().manual_seed(1))
     e = torch.cat([out.demos.positions[i, :n] - syn.clean[i, :n] for i, n in enumerate(syn.demos.lengths.tolist())])
@@ -90,6 +90,11 @@ def test_with_correlated_noise_has_the_asked_correlation_and_level():
     assert torch.equal(out.switch_times, syn.switch_times) and torch.equal(out.demos.lengths, syn.demos.lengths)
     with pytest.raises(ValueError, match="rho"):
         with_correlated_noise(syn, 1.0, torch.Generator().manual_seed(1))
+    quiet = with_correlated_noise(syn, 0.0, torch.Generator().manual_seed(1), scale=0.1)
+    e = torch.cat([quiet.demos.positions[i, :n] - syn.clean[i, :n] for i, n in enumerate(syn.demos.lengths.tolist())])
+    assert float(e.std()) == pytest.approx(0.1 * syn.noise, rel=0.1) and quiet.noise == pytest.approx(0.1 * syn.noise)
+    with pytest.raises(ValueError, match="scale"):
+        with_correlated_noise(syn, 0.0, torch.Generator().manual_seed(1), scale=-1.0)
 
 
 def test_with_sampling_rate_keeps_the_motion_and_maps_the_switches():

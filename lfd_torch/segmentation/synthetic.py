@@ -666,14 +666,16 @@ def scoop_steps(
     )  # fmt: skip
 
 
-def with_correlated_noise(syn: SyntheticSteps, rho: float, generator: torch.Generator) -> SyntheticSteps:
-    """The same noise-free demonstrations with new AR(1) position noise of lag-one correlation ``rho`` and the
-    same marginal standard deviation ``syn.noise``: e_t = rho e_(t-1) + (1 - rho^2)^(1/2) eta_t, eta_t ~ N(0, I),
-    e_0 ~ N(0, I) (stationary), times ``syn.noise``. A filtered sensor, a tremor or resampled data are not white
-    at the sampling rate; rho = 0 gives new white noise.
+def with_correlated_noise(syn: SyntheticSteps, rho: float, generator: torch.Generator, scale: float = 1.0
+                          ) -> SyntheticSteps:
+    """The same noise-free demonstrations with new AR(1) position noise of lag-one correlation ``rho`` and
+    marginal standard deviation ``scale * syn.noise``: e_t = rho e_(t-1) + (1 - rho^2)^(1/2) eta_t, eta_t ~ N(0,
+    I), e_0 ~ N(0, I) (stationary), times that level. A filtered sensor, a tremor or resampled data are not white
+    at the sampling rate; rho = 0 gives new white noise; ``scale`` < 1 a better sensor of the same motions.
 
     Args:
-        syn: a draw with ``clean`` (a benchmark family); rho: in [0, 1); generator: the new noise's randomness.
+        syn: a draw with ``clean`` (a benchmark family); rho: in [0, 1); generator: the new noise's randomness;
+            scale: > 0, the new level over the draw's (the result's ``noise``).
     """
     from scipy.signal import lfilter
 
@@ -681,17 +683,20 @@ def with_correlated_noise(syn: SyntheticSteps, rho: float, generator: torch.Gene
         raise ValueError("with_correlated_noise needs the noise-free demonstrations (syn.clean)")
     if not 0.0 <= rho < 1.0:
         raise ValueError(f"rho must be in [0, 1), got {rho}")
+    if not (math.isfinite(scale) and scale > 0.0):
+        raise ValueError(f"scale must be a positive number, got {scale}")
+    level = scale * syn.noise
     sequences = []
     for i, n in enumerate(syn.demos.lengths.tolist()):
         clean = syn.clean[i, : int(n)]
         eta = torch.randn(clean.shape, generator=generator, dtype=clean.dtype, device=clean.device).cpu().numpy()
         eta[1:] *= math.sqrt(1.0 - rho * rho)
         e = torch.as_tensor(lfilter([1.0], [1.0, -rho], eta, axis=0), dtype=clean.dtype, device=clean.device)
-        sequences.append(clean + syn.noise * e)
+        sequences.append(clean + level * e)
     dt = float(syn.demos.times[0, 1] - syn.demos.times[0, 0])
     demos = Demos.from_sequences(sequences, dt=dt, attractor=syn.demos.attractor, dtype=syn.demos.positions.dtype,
                                  device=syn.demos.positions.device)
-    return replace(syn, demos=demos)
+    return replace(syn, demos=demos, noise=level)
 
 
 def with_sampling_rate(syn: SyntheticSteps, rate: float, generator: torch.Generator) -> SyntheticSteps:
