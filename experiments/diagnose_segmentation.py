@@ -26,7 +26,7 @@ import torch
 
 import lfd_torch.segmentation.sampler as sampler_module
 from lfd_torch.segmentation import segment
-from lfd_torch.segmentation.synthetic import FAMILIES
+from lfd_torch.segmentation.synthetic import FAMILIES, with_correlated_noise
 from bench_segmentation import data_seed, segment_options
 
 
@@ -46,13 +46,17 @@ def captured_runs():
         sampler_module._Run.sample = original
 
 
-def case_labellings(family: str, seed: int, n_demos: int = 1, n_steps: int | None = None, **options):
+def case_labellings(family: str, seed: int, n_demos: int = 1, n_steps: int | None = None,
+                    noise_scale: float | None = None, **options):
     """One benchmark case segmented with ``options``: the Segmentation, the sampler run it made and the true
     labelling (N, T) on the run's grid (grid point j of demonstration i labelled with the true step of its
     full-rate sample; true step m is state m; padding repeats the last label). ``n_steps``: the family drawn with
-    that many legs, as ``bench_segmentation.py --n-steps``."""
+    that many legs, as ``bench_segmentation.py --n-steps``; ``noise_scale``: new white noise at that multiple of
+    the case's level, as ``bench_segmentation.py --noise-scale`` (the same draw of the noise)."""
     overrides = {} if n_steps is None else {"n_steps": n_steps}
     syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n_demos, **overrides)
+    if noise_scale is not None:
+        syn = with_correlated_noise(syn, 0.0, torch.Generator().manual_seed(data_seed(family, seed) + 1), noise_scale)
     with captured_runs() as runs:
         seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), **options)
     run = runs[-1]
@@ -66,9 +70,10 @@ def case_labellings(family: str, seed: int, n_demos: int = 1, n_steps: int | Non
     return seg, run, truth
 
 
-def score_gap(family: str, seed: int, n_demos: int = 1, n_steps: int | None = None, **options) -> dict:
+def score_gap(family: str, seed: int, n_demos: int = 1, n_steps: int | None = None,
+              noise_scale: float | None = None, **options) -> dict:
     """Steps and collapsed scores of the returned and the true labelling of one case (:func:`case_labellings`)."""
-    seg, run, truth = case_labellings(family, seed, n_demos, n_steps, **options)
+    seg, run, truth = case_labellings(family, seed, n_demos, n_steps, noise_scale, **options)
     res = seg.sampler
     M = int(truth.max()) + 1
     features = torch.ones(run.N, M, dtype=torch.bool)
@@ -99,6 +104,8 @@ def main() -> None:
                     help="a case to score (repeatable; replaces --family, --n-demos and --seeds)")
     ap.add_argument("--n-steps", type=int, default=None, metavar="M",
                     help="straight and curved families drawn with M legs (the cases of bench_segmentation.py --n-steps)")
+    ap.add_argument("--noise-scale", type=float, default=None, metavar="S",
+                    help="new white position noise at S times each case's level (bench_segmentation.py --noise-scale)")
     ap.add_argument("--json", default=None, help="write every case's row (scores, gap, its terms) to this JSON file")
     args = ap.parse_args()
     if args.case:
@@ -117,7 +124,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|")
     rows = []
     for family, n_demos, seed in cases:
-        r = {"n_demos": n_demos, **score_gap(family, seed, n_demos, args.n_steps, **options)}
+        r = {"n_demos": n_demos, **score_gap(family, seed, n_demos, args.n_steps, args.noise_scale, **options)}
         rows.append(r)
         print(f"| {r['family']} | {n_demos} | {r['seed']} | {r['true_steps']} | {r['found_steps']} | "
               f"{r['score_found']} | {r['score_true']} | {r['gap']} |", flush=True)
@@ -134,7 +141,8 @@ def main() -> None:
 
         from lfd_torch.store import atomic_write, git_sha
 
-        out = {"options": options, "n_steps": args.n_steps, "git_sha": git_sha(), "cases": rows}
+        out = {"options": options, "n_steps": args.n_steps, "noise_scale": args.noise_scale, "git_sha": git_sha(),
+               "cases": rows}
         atomic_write(args.json, lambda p: p.write_text(json.dumps(out, indent=1)))
 
 
