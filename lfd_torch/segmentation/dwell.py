@@ -41,7 +41,7 @@ the 22 missed synthetic cases scored by ``experiments/diagnose_segmentation.py -
 round a gap by at most 1 / k of it at each end and the interpolation changes no case's every-switch verdict, but at
 10 Hz (k = 1) a grid gap is one or two whole samples, a fast noisy speed estimate made the grid drop a level and
 the term read the two-sample gap as a pause (``bench_segmentation.py --rate 10``: every switch 60 % of the 280
-cases with the sample times, 73 % with the pace). Eight corrections were tried and not kept
+cases with the sample times, 73 % with the pace). Nine corrections were tried and not kept
 (``experiments/segmentation_studies.md``, "Dwell: corrections tried").
 
 It is an emission of the phase-expanded HMM (phase 0: the first point of a run, any other phase: inside a run), so
