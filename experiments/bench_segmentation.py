@@ -350,15 +350,13 @@ def map_cases(fn: Callable[[Any], Any], tasks: list[Any], jobs: int = 1):
         yield from pool.map(fn, tasks)
 
 
-def _synthetic_case(task: tuple[str, int, int, tuple[str, ...], float | None, int | None, float | None,
-                                float | None]) -> list[dict[str, Any]]:  # fmt: skip
-    """The rows of one (family, n_demos, seed) case, one per method (recorded at ``rate`` Hz instead of 100 when
-    rate is not None, :func:`with_sampling_rate`, new white noise seeded data seed + 2; AR(1) noise of lag-one
-    correlation rho instead of the white noise when rho is not None, :func:`with_correlated_noise`, seeded data
-    seed + 1; that noise, white unless rho is given, at noise_scale times the level when noise_scale is not None;
-    M legs instead of the drawn number when n_steps is not None)."""
-    family, n, seed, methods, rho, n_steps, rate, noise_scale = task
-    torch.set_num_threads(1)
+def case_data(family: str, seed: int, n: int, *, n_steps: int | None = None, rate: float | None = None,
+              rho: float | None = None, noise_scale: float | None = None):
+    """The SyntheticSteps of case ``seed`` of a family with n demonstrations: recorded at ``rate`` Hz instead of 100
+    when rate is not None (:func:`with_sampling_rate`, new white noise seeded data seed + 2); AR(1) noise of lag-one
+    correlation rho instead of the white noise when rho is not None (:func:`with_correlated_noise`, seeded data
+    seed + 1); that noise, white unless rho is given, at noise_scale times the level when noise_scale is not None;
+    M legs instead of the drawn number when n_steps is not None."""
     overrides = {} if n_steps is None else {"n_steps": n_steps}
     syn = ALL_FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n, **overrides)
     if rate is not None:
@@ -367,6 +365,15 @@ def _synthetic_case(task: tuple[str, int, int, tuple[str, ...], float | None, in
         syn = with_correlated_noise(syn, 0.0 if rho is None else rho,
                                     torch.Generator().manual_seed(data_seed(family, seed) + 1),
                                     1.0 if noise_scale is None else noise_scale)
+    return syn
+
+
+def _synthetic_case(task: tuple[str, int, int, tuple[str, ...], float | None, int | None, float | None,
+                                float | None]) -> list[dict[str, Any]]:  # fmt: skip
+    """The rows of one (family, n_demos, seed) case, one per method, on :func:`case_data`."""
+    family, n, seed, methods, rho, n_steps, rate, noise_scale = task
+    torch.set_num_threads(1)
+    syn = case_data(family, seed, n, n_steps=n_steps, rate=rate, rho=rho, noise_scale=noise_scale)
     rows = []
     for method in methods:
         t0 = time.perf_counter()

@@ -26,8 +26,8 @@ import torch
 
 import lfd_torch.segmentation.sampler as sampler_module
 from lfd_torch.segmentation import segment
-from lfd_torch.segmentation.synthetic import FAMILIES, with_correlated_noise
-from bench_segmentation import data_seed, segment_options
+from lfd_torch.segmentation.synthetic import FAMILIES
+from bench_segmentation import case_data, segment_options
 
 
 @contextlib.contextmanager
@@ -53,10 +53,7 @@ def case_labellings(family: str, seed: int, n_demos: int = 1, n_steps: int | Non
     full-rate sample; true step m is state m; padding repeats the last label). ``n_steps``: the family drawn with
     that many legs, as ``bench_segmentation.py --n-steps``; ``noise_scale``: new white noise at that multiple of
     the case's level, as ``bench_segmentation.py --noise-scale`` (the same draw of the noise)."""
-    overrides = {} if n_steps is None else {"n_steps": n_steps}
-    syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n_demos, **overrides)
-    if noise_scale is not None:
-        syn = with_correlated_noise(syn, 0.0, torch.Generator().manual_seed(data_seed(family, seed) + 1), noise_scale)
+    syn = case_data(family, seed, n_demos, n_steps=n_steps, noise_scale=noise_scale)
     with captured_runs() as runs:
         seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), **options)
     run = runs[-1]

@@ -280,13 +280,14 @@ def test_diagnose_segmentation_scores_the_returned_labelling_as_the_sampler_does
     search's objective), the true labelling of the same grid gets a finite score of its own, and the gap split into
     the score's terms adds up to the gap."""
     import diagnose_segmentation as diag
+    from bench_segmentation import data_seed
 
     with diag.captured_runs() as runs:
         pass
     assert runs == []
     r = diag.score_gap("straight_const_2d", 0, 1, selection="map", position_weight=None, straight_weight=0.5)
     syn_seg = diag.segment(
-        diag.FAMILIES["straight_const_2d"](torch.Generator().manual_seed(diag.data_seed("straight_const_2d", 0)), 1).demos,
+        diag.FAMILIES["straight_const_2d"](torch.Generator().manual_seed(data_seed("straight_const_2d", 0)), 1).demos,
         generator=torch.Generator().manual_seed(0), selection="map", position_weight=None, straight_weight=0.5,
     )
     assert r["score_found"] == pytest.approx(syn_seg.info["collapsed_log_prob"], abs=0.05)
