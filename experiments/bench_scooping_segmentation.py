@@ -121,13 +121,12 @@ def synthetic_turns(seeds: int) -> list[dict]:
     """Chord turns on the noise-free synthetic paths (one demonstration, the benchmark's data seeds): at the true
     corners of the constant-speed straight and curved families, at the middle of every curved leg and of the scoop
     hook."""
-    from lfd_torch.segmentation.synthetic import FAMILIES
-    from bench_segmentation import data_seed
+    from bench_segmentation import case_data
 
     rows = []
     for family in ("straight_const_3d", "curved_const_3d", "scoop_const_3d"):
         for seed in range(seeds):
-            syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), 1)
+            syn = case_data(family, seed, 1)
             x, T = syn.clean[0], int(syn.demos.lengths[0])
             x = x[:T]
             bounds = [0, *syn.switch_times[0].tolist(), T]

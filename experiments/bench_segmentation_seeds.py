@@ -43,7 +43,7 @@ from lfd_torch.data import load_lasa
 from lfd_torch.segmentation import segment
 from lfd_torch.segmentation.sampler import SELECTIONS
 from lfd_torch.segmentation.synthetic import FAMILIES, multi_step_demos
-from bench_segmentation import data_seed, map_cases, segment_options
+from bench_segmentation import case_data, map_cases, segment_options
 
 #: The experiment config that defines the 3-D set (its ``synthetic_3d`` entry, arguments of ``multi_step_demos``).
 SEGMENT_LASA_CONF = Path(__file__).resolve().parents[1] / "conf" / "segment_lasa.yaml"
@@ -117,7 +117,7 @@ def stability_case(demos, true_steps: int, seeds: int, selection: str, options: 
 def _synthetic_case(task: tuple) -> dict:
     family, n, case, seeds, selection, options = task
     torch.set_num_threads(1)
-    syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, case)), n)
+    syn = case_data(family, case, n)
     return {"family": family, "n_demos": n, "case": case,
             **stability_case(syn.demos, syn.n_steps, seeds, selection, options)}
 

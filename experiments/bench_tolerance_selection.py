@@ -27,7 +27,7 @@ import torch
 from lfd_torch.data import load_lasa
 from lfd_torch.segmentation import segment
 from lfd_torch.segmentation.synthetic import FAMILIES
-from bench_segmentation import data_seed, map_cases, score_case, switches_from_labels
+from bench_segmentation import case_data, map_cases, score_case, switches_from_labels
 from bench_segmentation_seeds import seed_stable
 from diagnose_segmentation import captured_runs
 from diagnose_tolerance import GRID, _grid_view, _labels, _rest_of_score, grid_settings, smooth_tolerance_evidence
@@ -57,7 +57,7 @@ def select(demos, seed: int):
 def _synthetic_case(task: tuple[str, int, int]) -> dict:
     family, n, seed = task
     torch.set_num_threads(1)
-    syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n)
+    syn = case_data(family, seed, n)
     t0 = time.perf_counter()
     seg, info = select(syn.demos, seed)
     found = [switches_from_labels(lab) for lab in seg.labels]

@@ -58,7 +58,7 @@ from lfd_torch.segmentation.sampler import TOLERANCES
 from lfd_torch.data import load_lasa
 from lfd_torch.segmentation import runs, segment
 from lfd_torch.segmentation.synthetic import FAMILIES
-from bench_segmentation import data_seed
+from bench_segmentation import case_data
 from diagnose_segmentation import captured_runs
 
 #: (name, rho, q, tau^2): white tolerances 0.2 and 0.05 rad; AR(1) deviations of stationary scale 0.2 or 0.1 rad
@@ -180,7 +180,7 @@ def _score(name: str, run, hyper: dict, a: tuple[list[Tensor], Tensor], b: tuple
 
 def synthetic_case(family: str, n_demos: int, seed: int) -> dict:
     """a = the default labelling, b = the truth on the sampler's grid."""
-    syn = FAMILIES[family](torch.Generator().manual_seed(data_seed(family, seed)), n_demos)
+    syn = case_data(family, seed, n_demos)
     with captured_runs() as captured:
         seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed))
     truth = [(torch.tensor(seg.info["grid"][i]).unsqueeze(-1) >= syn.switch_times[i].cpu().unsqueeze(0)).sum(-1)
