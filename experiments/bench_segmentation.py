@@ -66,6 +66,14 @@ was added after every default was set:
         --families rounded_const_2d rounded_const_3d rounded_vary_2d rounded_vary_3d \
         --json results/tables/bench_segmentation_held_out.json
 
+A second held-out set (:data:`lfd_torch.segmentation.synthetic.SLOWING_FAMILIES`, added later and used to choose
+no setting either) draws the benchmark's shapes with a motion that slows at every corner to 20-70 % of the leg's
+mean speed without stopping, between the families' rest and constant speed:
+
+    OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts synthetic --method segment --jobs 2 \
+        --families straight_slow_2d straight_slow_3d curved_slow_2d curved_slow_3d out_and_back_slow_2d \
+        revisit_slow_2d scoop_slow_3d --json results/tables/bench_segmentation_held_out_slowing.json
+
 ``--noise-scale S`` gives every case new white position noise of S times its level (the same paths; with
 ``--noise-correlation``, AR(1) noise of that level): at S = 0.1 a sensor ten times better, which tells a miss that
 the data's noise makes from one that the model makes on any data:
@@ -106,6 +114,7 @@ from lfd_torch.segmentation import segment
 from lfd_torch.segmentation.synthetic import (
     FAMILIES,
     HELD_OUT_FAMILIES,
+    SLOWING_FAMILIES,
     SyntheticSteps,
     with_correlated_noise,
     with_sampling_rate,
@@ -118,7 +127,7 @@ TOLERANCE = 0.03  # a switch is found when a detected one lies within 3 % of the
 SAVGOL_WINDOW = 25  # samples (0.25 s at dt = 0.01 s)
 PENALTY_C = 1.0  # PELT penalty = PENALTY_C * log(T) * n_features
 HMM_STATES = range(1, 9)
-ALL_FAMILIES = {**FAMILIES, **HELD_OUT_FAMILIES}
+ALL_FAMILIES = {**FAMILIES, **HELD_OUT_FAMILIES, **SLOWING_FAMILIES}
 
 
 def _timed(demos, seed: int, **kw: Any) -> tuple[float, Any]:
@@ -488,7 +497,8 @@ def main() -> None:
     parser.add_argument("--method", nargs="+", default=["segment", "ruptures", "hmmlearn"], choices=METHODS,
                         help="methods of the synthetic part")  # fmt: skip
     parser.add_argument("--families", nargs="+", default=list(FAMILIES), choices=list(ALL_FAMILIES),
-                        help="synthetic part: families of FAMILIES (the default, all of them) or HELD_OUT_FAMILIES")
+                        help="synthetic part: families of FAMILIES (the default, all of them), HELD_OUT_FAMILIES or "
+                             "SLOWING_FAMILIES")
     parser.add_argument("--n-demos", nargs="+", type=int, default=[1, 4])
     parser.add_argument("--noise-correlation", type=float, default=None, metavar="RHO",
                         help="synthetic part: AR(1) position noise of this lag-one correlation (same level) instead "

@@ -10,6 +10,7 @@ import torch
 from lfd_torch.segmentation.synthetic import (
     FAMILIES,
     HELD_OUT_FAMILIES,
+    SLOWING_FAMILIES,
     curved_steps,
     multi_step_demos,
     out_and_back_steps,
@@ -223,3 +224,43 @@ def test_rounded_switch_is_the_arc_midpoint(name, seed):
             assert ratio < 1.01  # chords of the arcs are a little shorter than their arc length
         else:
             assert 1.8 < ratio < 4.1  # (1 + a) / (1 - a), a in [0.3, 0.6] (where the wave peaks inside the demo)
+
+
+SLOWING = sorted(SLOWING_FAMILIES)
+
+
+def test_slowing_registry_is_the_shapes_with_the_slowing_timing():
+    assert SLOWING == sorted(n.replace("_const_", "_slow_") for n in NAMES if "_const_" in n)
+    assert not set(SLOWING) & (set(FAMILIES) | set(HELD_OUT_FAMILIES))
+    with pytest.raises(ValueError, match="profile"):
+        multi_step_demos(torch.Generator().manual_seed(0), profile="slowing")
+
+
+@pytest.mark.parametrize("name", SLOWING)
+@pytest.mark.parametrize("seed", [0, 1])
+def test_slowing_family_slows_at_every_corner_without_stopping(name, seed):
+    """Every leg's progress is (1 - lam) tau + lam mj(tau): the speed at both ends of a leg is 1 - lam of the leg's
+    mean (lam in [0.3, 0.8], one per case) and 1 + 7 lam / 8 of it at the middle; the truth is the corner sample,
+    where the direction jumps by the corner angle, as in the families."""
+    g = lambda: torch.Generator().manual_seed(seed)  # noqa: E731
+    syn, again = SLOWING_FAMILIES[name](g(), 3), SLOWING_FAMILIES[name](g(), 3)
+    assert torch.equal(syn.demos.positions, again.demos.positions) and syn.family == name
+    assert syn.profile == "slowing" and 0.003 <= syn.noise / syn.span <= 0.01
+    ratios = []
+    for i in range(syn.demos.n_demos):
+        n = int(syn.demos.lengths[i])
+        step = syn.clean[i, :n].diff(dim=0)
+        sw = syn.switch_times[i]
+        turn = turn_deg(step[:-1], step[1:])
+        assert torch.allclose(turn[sw - 1], syn.corner_angles[i], atol=2.0)
+        speed = step.norm(dim=1)
+        bounds = [0] + sw.tolist() + [n - 1]
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            leg = speed[a:b]
+            mean = float(leg.mean())
+            ratios.append((float(leg[0]) / mean, float(leg[-1]) / mean, float(leg[(b - a) // 2]) / mean))
+    ratios = torch.tensor(ratios, dtype=F64)
+    lam = 1.0 - float(ratios[:, :2].mean())
+    assert 0.3 - 0.02 <= lam <= 0.8 + 0.02
+    assert torch.allclose(ratios[:, :2], torch.full_like(ratios[:, :2], 1.0 - lam), atol=0.02)
+    assert torch.allclose(ratios[:, 2], torch.full_like(ratios[:, 2], 1.0 + 7.0 * lam / 8.0), atol=0.03)

@@ -23,7 +23,11 @@ The benchmark families (:data:`FAMILIES`) are independent generators of harder, 
 
 Each family comes with dwelling (``min_jerk``: every leg is a minimum-jerk profile, so the motion slows to rest at
 every corner) and constant-speed (``constant``: uniform speed along each leg, the speed jumps only through the
-per-leg timing jitter) timing, in 2-D and/or 3-D (the suffix of the family name).
+per-leg timing jitter) timing, in 2-D and/or 3-D (the suffix of the family name). A third timing, ``slowing``, is
+kept apart as a held-out set (:data:`SLOWING_FAMILIES`): the motion slows at every corner without stopping, the
+leg's progress the blend (1 - lam) tau + lam mj(tau) of constant speed and the minimum-jerk profile mj, lam drawn
+per case in [0.3, 0.8], so the speed at a corner is 1 - lam (20-70 %) of the leg's mean speed and 1 + 7 lam / 8 at
+its middle; its sample counts follow the constant-speed rule.
 
 Time base and variation: dt = 0.01 s. A leg of arc length L gets n_nom * sqrt(L / L_g) samples (dwelling) or
 n_nom * L / L_g samples (constant speed), L_g the geometric mean of the path's leg lengths, n_nom drawn in
@@ -76,9 +80,10 @@ __all__ = [
     "rounded_steps",
     "FAMILIES",
     "HELD_OUT_FAMILIES",
+    "SLOWING_FAMILIES",
 ]
 
-PROFILES = ("min_jerk", "constant")
+PROFILES = ("min_jerk", "constant", "slowing")
 DT = 0.01
 
 
@@ -90,7 +95,7 @@ class SyntheticSteps:
         demos: the B demonstrations (positions in units of ``scale``, dt = 0.01 s).
         waypoints: (M + 1, d) nominal waypoints.
         switch_times: (B, M - 1) long, first sample of steps 2..M in each demonstration.
-        profile: "min_jerk" or "constant".
+        profile: "min_jerk", "constant" or "slowing".
         clean: (B, T, d) noise-free positions (edge-padded), or None (:func:`multi_step_demos`).
         corner_angles: (B, M - 1) jump of the tangent direction at each corner of each (noise-free, jittered)
             demonstration in degrees, or None.
@@ -183,8 +188,8 @@ def multi_step_demos(
     Returns:
         SyntheticSteps.
     """
-    if profile not in PROFILES:
-        raise ValueError(f"profile must be one of {PROFILES}, got {profile!r}")
+    if profile not in ("min_jerk", "constant"):
+        raise ValueError(f"profile must be 'min_jerk' or 'constant', got {profile!r}")
     if waypoints is None:
         waypoints = random_waypoints(n_steps, dim, generator, dtype=dtype)
     device = generator.device  # the data are drawn on the generator's device
@@ -403,6 +408,7 @@ def _render(
     else:
         n_nom = _rand(generator, 130.0, 170.0)
         nominal = [n_nom * v / geo_mean for v in lengths]
+    blend = _rand(generator, 0.3, 0.8) if profile == "slowing" else None
     if noise_fraction is None:
         noise_fraction = _rand(generator, 0.003, 0.01)
     local_t = _jitter_scale(lengths, dtype, device)
@@ -416,7 +422,9 @@ def _render(
             factor = scale * (1.0 + leg_jitter * (2.0 * _rand(generator, 0.0, 1.0) - 1.0))
             n = max(20, int(round(nominal[m] * factor)))
             tau = torch.arange(n + 1 if m == M - 1 else n, dtype=dtype, device=device) / n
-            pieces.append(_leg_points(c[m], c[m + 1], normals[m], bends[m], _profile(tau, profile)))
+            progress = (_profile(tau, profile) if blend is None
+                        else (1.0 - blend) * tau + blend * _profile(tau, "min_jerk"))
+            pieces.append(_leg_points(c[m], c[m + 1], normals[m], bends[m], progress))
             total += n
             if m < M - 1:
                 switch.append(total)  # sample `total` is corner m + 1, the first sample of step m + 2
@@ -475,7 +483,8 @@ def polyline_steps(
         n_demos: B demonstrations.
         dim: d >= 2.
         n_steps: M legs; None draws it in {3, 4, 5}.
-        profile: "min_jerk" (rest at every corner) or "constant" (constant speed along each leg).
+        profile: "min_jerk" (rest at every corner), "constant" (constant speed along each leg) or "slowing" (slower,
+            not at rest, at every corner; module docstring).
         turn_deg: range of the corner angles (jump of the tangent direction), degrees.
         bend_deg: range of each leg's smooth tangent turn, degrees (0, 0: straight legs).
         length_ratio: leg arc lengths are log-uniform within a factor ``length_ratio`` of each other.
@@ -879,20 +888,31 @@ def _family(fn: Callable[..., SyntheticSteps], profile: str, dim: int, name: str
     return draw
 
 
+_SHAPES = (
+    ("straight", straight_steps, (2, 3)),
+    ("curved", curved_steps, (2, 3)),
+    ("out_and_back", out_and_back_steps, (2,)),
+    ("revisit", revisit_steps, (2,)),
+    ("scoop", scoop_steps, (3,)),
+)
+
+
 def _build_families() -> dict[str, FamilyDraw]:
-    table = (
-        ("straight", straight_steps, (2, 3)),
-        ("curved", curved_steps, (2, 3)),
-        ("out_and_back", out_and_back_steps, (2,)),
-        ("revisit", revisit_steps, (2,)),
-        ("scoop", scoop_steps, (3,)),
-    )
     out = {}
-    for shape, fn, dims in table:
+    for shape, fn, dims in _SHAPES:
         for timing, profile in (("dwell", "min_jerk"), ("const", "constant")):
             for dim in dims:
                 name = f"{shape}_{timing}_{dim}d"
                 out[name] = _family(fn, profile, dim, name)
+    return out
+
+
+def _build_slowing() -> dict[str, FamilyDraw]:
+    out = {}
+    for shape, fn, dims in _SHAPES:
+        for dim in dims:
+            name = f"{shape}_slow_{dim}d"
+            out[name] = _family(fn, "slowing", dim, name)
     return out
 
 
@@ -916,3 +936,9 @@ FAMILIES: dict[str, FamilyDraw] = _build_families()
 #: paths and timings it was not tuned on, kept apart from :data:`FAMILIES` (whose 280 cases the stored tables count).
 #: Names ``rounded_{const|vary}_{2d|3d}``.
 HELD_OUT_FAMILIES: dict[str, FamilyDraw] = _build_held_out()
+
+#: The benchmark's shapes with the ``slowing`` timing (module docstring): the motion slows to 20-70 % of the leg's
+#: mean speed at every corner without stopping, between the families' rest and constant speed, as a human
+#: demonstrator often does. A second held-out set, added after every default of
+#: :func:`lfd_torch.segmentation.segment` was set and used to choose none. Names ``{shape}_slow_{2d|3d}``.
+SLOWING_FAMILIES: dict[str, FamilyDraw] = _build_slowing()
