@@ -393,3 +393,29 @@ def test_chord_turn_is_the_corner_angle_and_the_arc_fraction():
     phi = torch.linspace(0.0, math.pi, 2001, dtype=torch.float64)  # a half circle: L = pi, 180 degrees
     arc = torch.stack([torch.cos(phi), torch.sin(phi)], -1)
     assert bench.chord_turn(arc, 1000, 0.05) == pytest.approx(180.0 * 0.05, rel=1e-3)  # h L = l_a / 20: 9 degrees
+
+
+def test_readme_slowing_table_is_the_stored_table():
+    """The README's held-out slowing table (every switch found, 1 / 4 demonstrations, per method) is what the stored
+    ``bench_segmentation_held_out_slowing.json`` says, and that table holds all 140 cases of the 7 families."""
+    import json
+    from pathlib import Path
+
+    from lfd_torch.segmentation.synthetic import SLOWING_FAMILIES
+
+    root = Path(__file__).resolve().parents[1]
+    table = json.loads((root / "results/tables/bench_segmentation_held_out_slowing.json").read_text())
+    rows = [r for r in table["synthetic"] if r["method"] == "segment"]
+    assert {r["family"] for r in rows} == set(SLOWING_FAMILIES) and len(rows) == 140
+    readme = (root / "README.md").read_text()
+    labels = {"segment": "`segment` (defaults)", "ruptures": "ruptures PELT, rbf cost",
+              "hmmlearn": "hmmlearn GaussianHMM, states by BIC"}
+    for method, label in labels.items():
+        mine = [r for r in table["synthetic"] if r["method"] == method]
+        share = {n: round(100 * sum(bool(r["all_switches"]) for r in mine if r["n_demos"] == n)
+                          / sum(r["n_demos"] == n for r in mine)) for n in (1, 4)}
+        overall = round(100 * sum(bool(r["all_switches"]) for r in mine) / len(mine))
+        line = next(ln for ln in readme[readme.index("| slowing, 140 cases"):].splitlines()
+                    if ln.startswith(f"| {label} |"))
+        cell = [c.strip() for c in line.strip("|").split("|")][2]
+        assert cell.replace("*", "").startswith(f"{overall} % ({share[1]} % / {share[4]} %)"), (method, cell)
