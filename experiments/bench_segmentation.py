@@ -68,9 +68,9 @@ was added after every default was set:
 
 A second held-out set (:data:`lfd_torch.segmentation.synthetic.SLOWING_FAMILIES`, added later and used to choose
 no setting either) draws the benchmark's shapes with a motion that slows at every corner to 20-70 % of the leg's
-mean speed without stopping, between the families' rest and constant speed:
+mean speed without stopping, between the families' rest and constant speed (the defaults and both baselines):
 
-    OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts synthetic --method segment --jobs 2 \
+    OMP_NUM_THREADS=1 .venv/bin/python experiments/bench_segmentation.py --parts synthetic --jobs 2 \
         --families straight_slow_2d straight_slow_3d curved_slow_2d curved_slow_3d out_and_back_slow_2d \
         revisit_slow_2d scoop_slow_3d --json results/tables/bench_segmentation_held_out_slowing.json
 
