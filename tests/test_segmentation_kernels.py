@@ -655,3 +655,101 @@ def test_demo_offsets_let_two_turned_demonstrations_share_one_straight_field(gen
     single = [demo_offset_statistics(*field_statistics(z[:1], u[:1], w[:1], one[:1]), v) for v in (0.0, 16.0)]
     evidences = [float(field_mixture_evidence(prior, *st, 0.5)[0][0] + ex[0]) for st, ex in single]
     assert abs(evidences[1] - evidences[0]) < 1.0
+
+
+def _rotation_reference(prior, z, u, w, d):
+    """log p(u | z, rotation) by quadrature over sigma^2 of the Gaussian marginal N(y; 0, sigma^2 (diag(1 / w) +
+    Z L0^-1 Z^T)) (theta integrated out in closed form), y the stacked directions, less d / 2 sum log w (the
+    Jacobian the callers add)."""
+    from lfd_torch.segmentation.field import _rotation_map
+
+    n = z.shape[0]
+    G = _rotation_map(d, F64, torch.device("cpu"))
+    Z = torch.stack([torch.kron(z[t].unsqueeze(0), torch.eye(d, dtype=F64)) @ G for t in range(n)]).reshape(n * d, -1)
+    v0 = torch.diagonal(prior.row_covariance)
+    n_rates = d * (d - 1) // 2
+    pv = torch.cat([v0[:1].expand(n_rates), v0[-1:].expand(d)])
+    shape = torch.diag((1.0 / w).repeat_interleave(d)) + Z @ torch.diag(pv) @ Z.T
+    extra = float(prior.dof) - d - 1.0
+    a0 = extra * d / 2.0 + 1.0
+    b0 = float(prior.scale[0, 0]) / extra * (a0 - 1.0)
+    y = u.reshape(-1).numpy()
+    cov = shape.numpy()
+    log_s2 = np.linspace(-10.0, 3.0, 1301)  # quadrature in log sigma^2
+    dens = [stats.multivariate_normal(np.zeros(n * d), math.exp(ls) * cov).logpdf(y)
+            + stats.invgamma(a0, scale=b0).logpdf(math.exp(ls)) + ls for ls in log_s2]
+    dens = np.array(dens)
+    top = dens.max()
+    integral = top + math.log(np.trapezoid(np.exp(dens - top), log_s2))
+    return integral - 0.5 * d * float(torch.log(w).sum())
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_rotation_field_evidence_against_quadrature_and_skew_mean(d):
+    """:func:`rotation_field_evidence` is the normal-inverse-gamma marginal likelihood of u_t = W z_t + b + noise
+    (W skew): against a quadrature over sigma^2 of the closed-form Gaussian marginal, with random weighted data; its
+    posterior-mean slope is skew-symmetric; on a noise-free circular arc it recovers R / r."""
+    from lfd_torch.segmentation.field import field_prior, field_statistics, rotation_field_evidence
+
+    g = torch.Generator().manual_seed(11 + d)
+    prior = field_prior(d, direction_noise=0.2, extra_dof=3.0)
+    n = 9
+    z = torch.cat([torch.randn(n, d, generator=g, dtype=F64), torch.ones(n, 1, dtype=F64)], -1)
+    u = torch.randn(n, d, generator=g, dtype=F64) * 0.5
+    w = torch.rand(n, generator=g, dtype=F64) + 0.3
+    stats_ = field_statistics(z, u, w, torch.ones(n, 1, dtype=F64))
+    ev, mean, psi = rotation_field_evidence(prior, *stats_)
+    assert float(ev[0]) == pytest.approx(_rotation_reference(prior, z, u, w, d), abs=2e-3)
+    slope = mean[0, :, :d]
+    assert torch.allclose(slope, -slope.T, atol=1e-12) and float(slope.abs().max()) > 0
+    assert torch.allclose(psi[0], psi[0, 0, 0] * torch.eye(d, dtype=F64))
+    # a noise-free quarter circle of radius 0.5 about c in the first two coordinates: u = R (x - c) / r
+    phi = torch.linspace(0.0, math.pi / 2, 40, dtype=F64)
+    c = torch.tensor([0.2, -0.1] + [0.3] * (d - 2), dtype=F64)
+    x = c.expand(40, d).clone()
+    x[:, 0] += 0.5 * torch.cos(phi)
+    x[:, 1] += 0.5 * torch.sin(phi)
+    tangent = torch.zeros(40, d, dtype=F64)
+    tangent[:, 0], tangent[:, 1] = -torch.sin(phi), torch.cos(phi)
+    zc = torch.cat([x, torch.ones(40, 1, dtype=F64)], -1)
+    _, mean, _ = rotation_field_evidence(prior, *field_statistics(zc, tangent, torch.ones(40, dtype=F64),
+                                                                  torch.ones(40, 1, dtype=F64)))
+    pred = zc @ mean[0].T
+    assert float((pred - tangent).abs().max()) < 0.02
+    assert float(mean[0, 1, 0]) == pytest.approx(2.0, rel=0.05)  # the rate 1 / r, up to the prior's shrinkage
+
+
+def test_rotation_slab_raises_an_arc_and_not_a_corner():
+    """With ``rotation_weight`` 0.5 the slab evidence of a circular arc rises above the affine one (one rate where
+    the affine field needs two slope entries), while that of two straight legs meeting at a corner (no single
+    rotation) is the affine evidence times 0.5: the component favours a true arc, not a merge."""
+    from lfd_torch.segmentation.field import field_mixture_evidence, field_prior, field_statistics
+
+    g = torch.Generator().manual_seed(5)
+    prior = field_prior(2, direction_noise=0.2, extra_dof=30.0)
+
+    def gain(x, u):
+        z = torch.cat([x, torch.ones(x.shape[0], 1, dtype=F64)], -1)
+        u = u + 0.05 * torch.randn(u.shape, generator=g, dtype=F64)
+        st = field_statistics(z, u, torch.full((x.shape[0],), 0.7, dtype=F64), torch.ones(x.shape[0], 1, dtype=F64))
+        affine = field_mixture_evidence(prior, *st, 0.0)[0]
+        mixed = field_mixture_evidence(prior, *st, 0.0, rotation_weight=0.5)[0]
+        return float(mixed - affine)
+
+    phi = torch.linspace(0.0, 2.0, 30, dtype=F64)  # a 115 degree arc of radius 0.3
+    arc = torch.stack([0.3 * torch.cos(phi), 0.3 * torch.sin(phi)], -1)
+    assert gain(arc, torch.stack([-torch.sin(phi), torch.cos(phi)], -1)) > 5.0
+    s = torch.linspace(0.0, 1.0, 15, dtype=F64).unsqueeze(-1)
+    legs = torch.cat([s * torch.tensor([1.0, 0.0], dtype=F64), torch.tensor([1.0, 0.0]) + s * torch.tensor([0.0, 1.0])])
+    dirs = torch.cat([torch.tensor([[1.0, 0.0]]).expand(15, 2), torch.tensor([[0.0, 1.0]]).expand(15, 2)]).to(F64)
+    assert gain(legs, dirs) == pytest.approx(math.log(0.5), abs=0.05)
+
+
+def test_rotation_weight_is_a_probability_below_one():
+    from lfd_torch.errors import InvalidArgumentError
+    from lfd_torch.segmentation.sampler import BetaProcessHMMSampler
+
+    assert BetaProcessHMMSampler(rotation_weight=0.5).rotation_weight == 0.5
+    for bad in (1.0, -0.1, float("nan")):
+        with pytest.raises(InvalidArgumentError, match="rotation_weight"):
+            BetaProcessHMMSampler(rotation_weight=bad)

@@ -73,6 +73,7 @@ gives the conjugate views of a correlated (AR(1)) tolerance, which the sampler's
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -86,7 +87,7 @@ from lfd_torch.gmm.gaussian import LOG_2PI
 
 __all__ = ["FieldPrior", "FieldObservations", "field_observations", "field_prior", "field_statistics",
            "field_posterior", "field_log_marginal_likelihood", "straight_field_prior", "field_mixture_evidence",
-           "field_mixture_posterior_mean", "sample_field", "field_log_density",
+           "field_mixture_posterior_mean", "rotation_field_evidence", "sample_field", "field_log_density",
            "field_log_likelihood",
            "field_log_likelihood_additive", "correlated_tolerance_observations", "correlated_tolerance_prior",
            "demo_offset_statistics", "TOLERANCE_MEMORY"]
@@ -338,11 +339,82 @@ def _affine(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Te
     return ev, (1 - r) * means[0] + r * means[1], (1 - r) * psis[0] + r * psis[1]
 
 
+@functools.lru_cache(maxsize=16)
+def _rotation_map(d: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """(d p, q) G with vec(B) = G theta (vec stacks the columns of B), theta = (w_ij for i < j, b), B = [W, b],
+    W = sum_ij w_ij (e_i e_j^T - e_j e_i^T) skew-symmetric: q = d (d - 1) / 2 + d."""
+    pairs = [(i, j) for i in range(d) for j in range(i + 1, d)]
+    G = torch.zeros(d * (d + 1), len(pairs) + d, dtype=dtype, device=device)
+    for k, (i, j) in enumerate(pairs):
+        G[j * d + i, k] = 1.0  # B[i, j] = w_ij
+        G[i * d + j, k] = -1.0  # B[j, i] = -w_ij
+    for i in range(d):
+        G[d * d + i, len(pairs) + i] = 1.0  # B[i, d] = b_i
+    return G
+
+
+def rotation_field_evidence(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor
+                            ) -> tuple[Tensor, Tensor, Tensor]:
+    """Evidence and posterior means of a rigid-rotation field: E[u | x] = W x~ + b with W skew-symmetric and an
+    isotropic tolerance Psi = sigma^2 I.
+
+    A circular arc in a plane is u = R (x - c) / r, R a quarter turn in the plane: a skew W = R / r (one rate per
+    plane, d (d - 1) / 2 in all) and an offset b, q = d (d - 1) / 2 + d parameters theta against the affine field's
+    d (d + 1). A corner between two arcs of different centres is no rotation, so this component raises the evidence
+    of a true arc, not that of a merge. Prior (the same scales as ``prior``): theta | sigma^2 ~ N(0, sigma^2 L0^-1)
+    with L0^-1 diagonal (each rate the slope variance V0[0, 0], each offset the offset variance V0[p - 1, p - 1] of
+    ``prior.row_covariance``), sigma^2 ~ IG(a0, b0) with a0 = (nu0 - d - 1) d / 2 + 1 and mean E[Psi]_11 of
+    ``prior``. Normal-inverse-gamma regression on the weighted statistics (u_t ~ N(B z_t, sigma^2 / omega_t I)):
+    with vec(B) = G theta, Gram = G^T (Szz kron I_d) G, c = G^T vec(Suz), y = tr Suu, n = d counts scalar
+    observations,
+
+        L_n = L0 + Gram,  m = L_n^-1 c,  a_n = a0 + n / 2,  b_n = b0 + (y - m^T c) / 2,
+        log p = -n / 2 log 2 pi + 1/2 log |L0| / |L_n| + a0 log b0 - a_n log b_n + log Gamma(a_n) - log Gamma(a0),
+
+    without the Jacobian d / 2 sum_t log omega_t (added by the caller, as for
+    :func:`field_log_marginal_likelihood`). Batch shape (..., K); 0 for empty states.
+
+    Returns:
+        log p(u | z, rotation) (..., K), E[B | u, z] (..., K, d, p) and E[Psi | u, z] = E[sigma^2] I (..., K, d, d).
+    """
+    d = suu.shape[-1]
+    p = d + 1
+    G = _rotation_map(d, szz.dtype, szz.device)
+    n_rates = G.shape[-1] - d
+    v0 = torch.diagonal(prior.row_covariance, dim1=-2, dim2=-1)
+    variances = torch.cat([v0[..., :1].expand(*v0.shape[:-1], n_rates), v0[..., -1:].expand(*v0.shape[:-1], d)], -1)
+    eye = torch.eye(d, dtype=szz.dtype, device=szz.device)
+    kron = (szz[..., :, None, :, None] * eye[:, None, :]).reshape(*szz.shape[:-2], p * d, p * d)  # Szz kron I_d
+    gram = G.T @ kron @ G
+    cross = (G.T @ suz.transpose(-1, -2).reshape(*suz.shape[:-2], d * p, 1)).squeeze(-1)
+    precision = torch.diag_embed(1.0 / variances) + gram
+    chol = torch.linalg.cholesky(0.5 * (precision + precision.transpose(-1, -2)))
+    m = torch.cholesky_solve(cross.unsqueeze(-1), chol).squeeze(-1)
+    extra = prior.dof - d - 1.0
+    a0 = extra * d / 2.0 + 1.0
+    b0 = prior.scale[..., 0, 0] / extra * (a0 - 1.0)
+    a_n = a0 + 0.5 * d * counts
+    b_n = b0 + 0.5 * (torch.diagonal(suu, dim1=-2, dim2=-1).sum(-1) - (m * cross).sum(-1)).clamp_min(0.0)
+    log_det = -torch.log(variances).sum(-1) - 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
+    ev = (-0.5 * d * counts * math.log(2.0 * math.pi) + 0.5 * log_det + a0 * torch.log(b0) - a_n * torch.log(b_n)
+          + torch.lgamma(a_n) - torch.lgamma(a0))
+    mean = (G @ m.unsqueeze(-1)).squeeze(-1).unflatten(-1, (p, d)).transpose(-1, -2)
+    psi = (b_n / (a_n - 1.0))[..., None, None] * eye
+    return torch.where(counts > 0, ev, torch.zeros_like(ev)), mean, psi
+
+
 def _mixture(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor, straight_weight: float,
-             wide: FieldPrior | None = None) -> tuple[Tensor, Tensor, FieldPrior | None, Tensor, Tensor]:
-    """The affine slab's posterior means (B, Psi), the straight posterior, log p(u | z) and log P(straight | u, z)
-    under the spike-and-slab prior."""
+             wide: FieldPrior | None = None, rotation_weight: float = 0.0
+             ) -> tuple[Tensor, Tensor, FieldPrior | None, Tensor, Tensor]:
+    """The slab's posterior means (B, Psi), the straight posterior, log p(u | z) and log P(straight | u, z) under
+    the spike-and-slab prior (the slab: affine, or with ``rotation_weight`` r > 0 the mixture (1 - r) affine + r
+    rotation, :func:`rotation_field_evidence`)."""
     ev_a, mean_a, psi_a = _affine(prior, counts, szz, suz, suu, wide)
+    if rotation_weight > 0:
+        ev_r, mean_r, psi_r = rotation_field_evidence(prior, counts, szz, suz, suu)
+        ev_slab = torch.logaddexp(math.log1p(-rotation_weight) + ev_a, math.log(rotation_weight) + ev_r)
+        r = torch.exp(math.log(rotation_weight) + ev_r - ev_slab)[..., None, None]  # P(rotation | u, z, slab)
+        mean_a, psi_a, ev_a = (1 - r) * mean_a + r * mean_r, (1 - r) * psi_a + r * psi_r, ev_slab
     if straight_weight <= 0:
         return mean_a, psi_a, None, ev_a, torch.full_like(ev_a, float("-inf"))
     straight, post_s = _straight_posterior(prior, counts, szz, suz, suu)
@@ -352,7 +424,8 @@ def _mixture(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: T
 
 
 def field_mixture_evidence(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor,
-                           straight_weight: float, wide: FieldPrior | None = None) -> tuple[Tensor, Tensor]:
+                           straight_weight: float, wide: FieldPrior | None = None, rotation_weight: float = 0.0
+                           ) -> tuple[Tensor, Tensor]:
     """Evidence of a state under the spike-and-slab field prior: straight (slope 0) with probability rho =
     ``straight_weight``, else affine (``prior``; with ``wide``, an equal mixture of the two slope scales),
 
@@ -360,20 +433,23 @@ def field_mixture_evidence(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: 
         p(u | z, affine) = p(u | z, prior)  or  (p(u | z, prior) + p(u | z, wide)) / 2,
 
     all MNIW evidences (:func:`field_log_marginal_likelihood`; the straight one on the statistics of the offset
-    regressor alone, under ``prior``). Batch shape (..., K); 0 for empty states.
+    regressor alone, under ``prior``). With ``rotation_weight`` r > 0 the affine part is itself the mixture
+    (1 - r) p(u | z, affine) + r p(u | z, rotation) (:func:`rotation_field_evidence`). Batch shape (..., K); 0 for
+    empty states.
 
     Returns:
         log p(u | z) and log P(straight | u, z) (-inf when rho = 0).
     """
-    return _mixture(prior, counts, szz, suz, suu, straight_weight, wide)[3:]
+    return _mixture(prior, counts, szz, suz, suu, straight_weight, wide, rotation_weight)[3:]
 
 
 def field_mixture_posterior_mean(prior: FieldPrior, counts: Tensor, szz: Tensor, suz: Tensor, suu: Tensor,
-                                 straight_weight: float, wide: FieldPrior | None = None) -> tuple[Tensor, Tensor]:
+                                 straight_weight: float, wide: FieldPrior | None = None, rotation_weight: float = 0.0
+                                 ) -> tuple[Tensor, Tensor]:
     """Posterior means E[B | u, z] (..., K, d, p) and E[Psi | u, z] (..., K, d, d) under the spike-and-slab prior of
     :func:`field_mixture_evidence`: the components' means weighted by their posterior probabilities (a straight
     field's slope columns are 0)."""
-    mean_a, psi_a, post_s, _, log_ps = _mixture(prior, counts, szz, suz, suu, straight_weight, wide)
+    mean_a, psi_a, post_s, _, log_ps = _mixture(prior, counts, szz, suz, suu, straight_weight, wide, rotation_weight)
     if post_s is None:
         return mean_a, psi_a
     d = suu.shape[-1]

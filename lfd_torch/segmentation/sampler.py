@@ -154,6 +154,18 @@ gained, one lost); s1 = 3 alone gains more (8 of the 280 and 9 of the 80 held-ou
 loses 3 single curved demonstrations and 3 held-out cases with four demonstrations: a shift of the prior toward
 straight fields, not a better model of both.
 
+Rotation fields (``rotation_weight`` r; :func:`~lfd_torch.segmentation.field.rotation_field_evidence`). Every
+change of the slope prior above moves cases between merged and split curves, because a looser slope serves a merge
+as much as a true arc. A circular arc is a rigid rotation field, u = W x~ + b with W skew-symmetric: d (d - 1) / 2
+rates and d offsets (3 + 3 in 3-D) against the affine field's 12, and one rate carries the turn where the affine
+slope spends two entries (so the prior charges a tight circle once, not twice). Two arcs meeting at a corner, or an
+arc and a straight leg, are no single rotation. So with r > 0 the collapsed score's slab is the mixture (1 - r)
+affine + r rotation (a normal-inverse-gamma regression with an isotropic tolerance, exact evidence), which raises
+the evidence of a true arc and not that of a merge; r = 0.5 says nothing about which kind is more common. The
+chains sample the affine model; the mixture acts through the collapsed score. Measured
+(``experiments/segmentation_variants.py``, row "rotation fields"): r = 0.5 gains 4 of the 280 synthetic cases and
+loses none, keeps LASA seed-stable, but loses 3 held-out cases and gains 1, and costs about 25 % more time.
+
 Dwell (``dwell``, :mod:`lfd_torch.segmentation.dwell`, the derivation there). The path-length grid hides how long
 the demonstrator spends somewhere, and a pause is where one subtask ends and the next begins. The model also
 explains the log time between grid points, c_t = mu + delta b_t + noise, b_t = 1 at the first point of a run, with
@@ -315,6 +327,7 @@ HYPERPARAMETER_RANGES: dict[str, tuple[type, float, float, bool, bool]] = {
     "straight_weight": (float, 0.0, 1.0, True, False),
     "slope_scale": (float, 0.0, 1e3, False, True),
     "slope_scale_mix": (float, 0.0, 1e3, True, True),
+    "rotation_weight": (float, 0.0, 1.0, True, False),
     "tolerance_correlation": (float, 0.0, 1.0, True, False),
     "demo_offset": (float, 0.0, 1e3, True, True),
     "n_chains": (int, 1, 64, True, True),
@@ -379,6 +392,8 @@ class BetaProcessHMMSampler:
             (:func:`~lfd_torch.segmentation.field.field_prior`).
         slope_scale_mix: s >= 0: in the collapsed score, the affine fields' slope prior is an equal mixture of the
             scales ``slope_scale`` and s (module docstring, "Slope scale"); 0: ``slope_scale`` alone.
+        rotation_weight: r in [0, 1): in the collapsed score (so ``selection="map"``) the affine slab is the mixture
+            (1 - r) affine + r rigid rotation (module docstring, "Rotation fields"); 0: affine alone.
         robust_dof: nu of the Student-t direction emission (None: Gaussian), see :mod:`.field`.
         position_weight: tau of the tempered position term of the emission (module docstring, "Position"), in
             [0, 1]; None: 1 / D, D the minimum duration in grid samples; 0: directions alone.
@@ -421,6 +436,7 @@ class BetaProcessHMMSampler:
         extra_dof: float = 2.0,
         slope_scale: float = 1.0,
         slope_scale_mix: float = 0.0,
+        rotation_weight: float = 0.0,
         robust_dof: float | None = 4.0,
         position_weight: float | None = 0.0,
         position_mixture: bool = False,
@@ -442,7 +458,7 @@ class BetaProcessHMMSampler:
             feature_mass=feature_mass, feature_concentration=feature_concentration,
             transition_concentration=transition_concentration, stickiness=stickiness,
             direction_noise=direction_noise, extra_dof=extra_dof, slope_scale=slope_scale,
-            slope_scale_mix=slope_scale_mix, robust_dof=robust_dof,
+            slope_scale_mix=slope_scale_mix, rotation_weight=rotation_weight, robust_dof=robust_dof,
             position_weight=position_weight, position_mixture=position_mixture, straight_weight=straight_weight,
             tolerance_correlation=tolerance_correlation, dwell_pace=dwell_pace, demo_offset=demo_offset,
             n_chains=n_chains,
@@ -466,6 +482,7 @@ class BetaProcessHMMSampler:
         self.extra_dof = float(extra_dof)
         self.slope_scale = float(slope_scale)
         self.slope_scale_mix = float(slope_scale_mix)
+        self.rotation_weight = float(rotation_weight)
         self.n_chains = int(n_chains)
         self.n_iterations = int(n_iterations)
         self.burn_in = float(burn_in)
@@ -668,7 +685,7 @@ class _Run:
         """(B, K) the states' field evidence (spike-and-slab, :func:`field_mixture_evidence`)."""
         stats, extra = self._field_terms(age, w, onehot)
         return field_mixture_evidence(self.score_prior, *stats, self.cfg.straight_weight,
-                                      self.wide_score_prior)[0] + extra
+                                      self.wide_score_prior, self.cfg.rotation_weight)[0] + extra
 
     def _rand(self, *shape: int) -> Tensor:
         return torch.rand(*shape, generator=self.gen, dtype=self.dtype, device=self.device)
@@ -1181,7 +1198,8 @@ class _Run:
         (nu + q_t) / 2), q_t the squared Mahalanobis residual."""
         nu, d = self.cfg.robust_dof, self.d
         mean, psi = field_mixture_posterior_mean(self.score_prior, *self._stats(age, w, onehot),
-                                                 self.cfg.straight_weight, self.wide_score_prior)
+                                                 self.cfg.straight_weight, self.wide_score_prior,
+                                                 self.cfg.rotation_weight)
         B, n, K = onehot.shape
         prec = torch.cholesky_inverse(torch.linalg.cholesky(psi))  # (B, K, d, d)
         if age is None:
@@ -1796,7 +1814,8 @@ class _Run:
         if self.cfg.robust_dof is not None:
             w = w * self._profile_scales(age, w, onehot)
         field, noise = field_mixture_posterior_mean(self.score_prior, *self._stats(age, w, onehot),
-                                                    self.cfg.straight_weight, self.wide_score_prior)  # (B, K, d, p), (B, K, d, d)
+                                                    self.cfg.straight_weight, self.wide_score_prior,
+                                                    self.cfg.rotation_weight)  # (B, K, d, p), (B, K, d, d)
         le, le_first = self._run_emissions(field[:, None], noise[:, None])  # (B, N, T, K)
         if self.tau > 0:
             post = niw_posterior(self.pos_prior, *self._position_statistics(onehot))
@@ -1844,7 +1863,8 @@ class _Run:
         if self.cfg.robust_dof is not None:
             w = w * self._profile_scales(age, w, onehot)
         mean, psi = field_mixture_posterior_mean(self.score_prior, *self._stats(age, w, onehot),
-                                                 self.cfg.straight_weight, self.wide_score_prior)
+                                                 self.cfg.straight_weight, self.wide_score_prior,
+                                                 self.cfg.rotation_weight)
         return mean[0], psi[0]
 
     def _run_emissions(self, field: Tensor, noise: Tensor) -> tuple[Tensor, Tensor | None]:

@@ -999,6 +999,7 @@ def segment(
     extra_dof: float = 30.0,
     slope_scale: float = 1.0,
     slope_scale_mix: float = 0.0,
+    rotation_weight: float = 0.0,
     robust_dof: float | None = 4.0,
     position_weight: float | None = None,
     position_mixture: bool = False,
@@ -1045,6 +1046,9 @@ def segment(
         slope_scale_mix: s >= 0: in the collapsed score (so ``selection="map"``) the affine fields' slope prior is an
             equal mixture of the scales ``slope_scale`` and s, so that a state may curve gently or tightly
             (:mod:`.sampler`, "Slope scale"); 0: ``slope_scale`` alone.
+        rotation_weight: r in [0, 1): in the collapsed score the affine slab is the mixture (1 - r) affine + r
+            rigid rotation, which fits a circular arc with fewer parameters and no merge better
+            (:mod:`.sampler`, "Rotation fields"); 0: affine alone.
         position_weight: tau of the tempered position Gaussian of every state, in [0, 1]; None: 1 / D (D the
             minimum duration in grid samples, the default); 0: directions alone (:mod:`.sampler`, "Position").
         position_mixture: the position term as a mixture over space, each state's Gaussian times its occupancy
@@ -1106,7 +1110,7 @@ def segment(
         feature_mass=feature_mass, feature_concentration=feature_concentration,
         transition_concentration=transition_concentration, stickiness=stickiness,
         direction_noise=direction_noise, extra_dof=extra_dof, slope_scale=slope_scale,
-        slope_scale_mix=slope_scale_mix, robust_dof=robust_dof,
+        slope_scale_mix=slope_scale_mix, rotation_weight=rotation_weight, robust_dof=robust_dof,
         position_weight=position_weight, position_mixture=position_mixture, tolerance_correlation=tolerance_correlation,
         dwell_pace=dwell_pace, demo_offset=demo_offset,
         straight_weight=straight_weight, n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
