@@ -360,8 +360,9 @@ def rotation_field_evidence(prior: FieldPrior, counts: Tensor, szz: Tensor, suz:
 
     A circular arc in a plane is u = R (x - c) / r, R a quarter turn in the plane: a skew W = R / r (one rate per
     plane, d (d - 1) / 2 in all) and an offset b, q = d (d - 1) / 2 + d parameters theta against the affine field's
-    d (d + 1). A corner between two arcs of different centres is no rotation, so this component raises the evidence
-    of a true arc, not that of a merge. Prior (the same scales as ``prior``): theta | sigma^2 ~ N(0, sigma^2 L0^-1)
+    d (d + 1). Two arcs meeting at a sharp corner are no single rotation, so this component raises the evidence of a
+    true arc and not that of such a merge (a rounded corner with short stretches of its legs is close to one wide
+    arc, and there it helps the merge too). Prior (the same scales as ``prior``): theta | sigma^2 ~ N(0, sigma^2 L0^-1)
     with L0^-1 diagonal (each rate the slope variance V0[0, 0], each offset the offset variance V0[p - 1, p - 1] of
     ``prior.row_covariance``), sigma^2 ~ IG(a0, b0) with a0 = (nu0 - d - 1) d / 2 + 1 and mean E[Psi]_11 of
     ``prior``. Normal-inverse-gamma regression on the weighted statistics (u_t ~ N(B z_t, sigma^2 / omega_t I)):
