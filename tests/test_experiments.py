@@ -419,3 +419,54 @@ def test_readme_slowing_table_is_the_stored_table():
                     if ln.startswith(f"| {label} |"))
         cell = [c.strip() for c in line.strip("|").split("|")][2]
         assert cell.replace("*", "").startswith(f"{overall} % ({share[1]} % / {share[4]} %)"), (method, cell)
+
+
+def test_oracle_leg_costs_and_partition_against_polyfit_and_ruptures():
+    """The known-count oracle's leg costs are numpy.polyfit's residual sums of squares (every candidate pair, an
+    irregular last candidate included), its dynamic programme returns the partition of ruptures' Dynp under the same
+    cost, and on noise-free straight legs at constant speed it puts every switch on its corner."""
+    import numpy as np
+    import ruptures as rpt
+
+    from oracle_switches import best_partition, oracle_switches, segment_costs
+
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(37, 2, generator=g, dtype=torch.float64).cumsum(0)
+    cand, cost = segment_costs(x, 2, 2, 5)
+    assert cand == list(range(0, 37, 2)) + [37]
+
+    def rss(seg: np.ndarray, degree: int) -> float:
+        t = np.arange(len(seg))
+        return float(sum(((np.polyval(np.polyfit(t, seg[:, a], degree), t) - seg[:, a]) ** 2).sum()
+                         for a in range(seg.shape[1])))
+
+    for i, a in enumerate(cand):
+        for j, b in enumerate(cand):
+            if b - a >= 5:
+                assert float(cost[i, j]) == pytest.approx(rss(x[a:b].numpy(), 2), abs=1e-9), (a, b)
+            else:
+                assert math.isinf(float(cost[i, j])), (a, b)
+
+    class PolyCost(rpt.base.BaseCost):
+        model, min_size = "poly1", 6
+
+        def fit(self, signal):
+            self.signal = signal
+            return self
+
+        def error(self, start, end):
+            return rss(self.signal[start:end], 1)
+
+    y = torch.randn(60, 2, generator=g, dtype=torch.float64).cumsum(0)
+    cand, cost = segment_costs(y, 1, 3, 6)
+    mine = best_partition(cand, [cost] * 3)
+    theirs = rpt.Dynp(custom_cost=PolyCost(), min_size=6, jump=3).fit(y.numpy()).predict(n_bkps=2)[:-1]
+    assert mine == theirs
+
+    corners = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 0.7], [0.2, 1.2]], dtype=torch.float64)
+    legs = [torch.linspace(0, 1, n + 1, dtype=torch.float64)[:-1, None] * (b - a) + a
+            for a, b, n in zip(corners[:-1], corners[1:], (100, 70, 94))]
+    path = torch.cat(legs + [corners[-1:]])
+    assert oracle_switches(path, [1, 1, 1], grid="full", stride=2, min_length=10) == [100, 170]
+    found = oracle_switches(path, [1, 1, 1], grid="average", stride=2, min_length=10)  # blocks of k = 4 samples
+    assert found[0] == 100 and found[1] in (168, 172)  # 170 lies inside the block 168-171
