@@ -470,3 +470,20 @@ def test_oracle_leg_costs_and_partition_against_polyfit_and_ruptures():
     assert oracle_switches(path, [1, 1, 1], grid="full", stride=2, min_length=10) == [100, 170]
     found = oracle_switches(path, [1, 1, 1], grid="average", stride=2, min_length=10)  # blocks of k = 4 samples
     assert found[0] == 100 and found[1] in (168, 172)  # 170 lies inside the block 168-171
+
+
+def test_readme_oracle_figures_are_the_stored_tables():
+    """The README's known-count oracle shares (every switch found, all 140 constant-speed cases) are what the stored
+    ``oracle_switches_*.json`` tables say, and each table holds the 140 cases of the seven families."""
+    import json
+
+    from oracle_switches import CONSTANT_SPEED
+
+    readme = (ROOT / "README.md").read_text()
+    text = readme[readme.index("How well the constant-speed switches can be placed at all"):][:1500]
+    for name in ("shape_full", "shape_average", "shape_subsample", "generic_full"):
+        table = json.loads((ROOT / f"results/tables/oracle_switches_{name}.json").read_text())
+        rows = table["cases"]
+        assert len(rows) == 140 and {r["family"] for r in rows} == set(CONSTANT_SPEED), name
+        share = 100 * sum(r["all_switches"] for r in rows) / len(rows)
+        assert f"{share:.1f} %" in text, (name, share)
