@@ -1,0 +1,219 @@
+"""Would a position emission with a line's lever arm prefer the true steps the defaults miss? (One-off diagnostic.)
+
+The known-count oracle (``oracle_switches.py``) finds every switch of the constant-speed families when it knows
+that a leg is straight and fits the leg's positions. The sampler sees only local slopes. This script scores two
+labellings of one case (the defaults' and the truth, both on the sampler's grid) under the emission that the oracle
+points to. Nothing in ``lfd_torch`` uses it.
+
+Observations: the means x_j of the samples nearest each grid point (block j holds the samples closer to grid point
+j than to its neighbours; m_j samples), standardised as the sampler's positions (:class:`~lfd_torch.segmentation.
+field.FieldObservations` centre and radius), with their mean path length s_j (:func:`~lfd_torch.segmentation.
+segmentation.path_length` of the sampler's velocities). The increment from block i to i + 1 belongs to the state of
+block i + 1. A state moves the position along its field, integrated over the increments it owns:
+
+    x_j = x_0 + sum_k beta_k^T R_kj + W_j + e_j,   e_j ~ N(0, sigma^2 / m_j),   per axis, independent axes,
+
+with the sampler's position noise sigma (``info["position_noise"]``). Each state is straight or affine (spike and
+slab, probability 1/2 each, every combination of the states summed):
+    straight  R_kj = the path length the state owned before block j (scalar), beta_k ~ N(0, 1 / d): a line through
+              the state's blocks, continuous at every switch, no tolerance;
+    affine    R_kj = sum_i ds_i (z_i + z_(i+1)) / 2 over the increments it owned before block j (z = [x~, 1] the
+              sampler's regressors), beta_k ~ the field prior's scales (slope entries N(0, slope_scale^2), offset
+              N(0, 1)), with the direction tolerance sigma_u of the defaults as a random walk: W gains N(0, ds_i^2
+              sigma_u^2) over each increment the state owns.
+x_0 ~ N(x_(first block), 1) per demonstration. All parameters are Gaussian, so the evidence of each combination is
+a Gaussian density over all blocks of all demonstrations (coefficients shared by the demonstrations of a state).
+
+For every case (the benchmark's data seed, sampler seed as ``diagnose_segmentation.py``) it prints the number of
+steps found and true, the sampler's emission gap (found - true, the collapsed score's emission term) and this
+emission's gap; negative: the emission prefers the true steps. With ``--halves`` it also scores the truth with every
+step of every demonstration cut in two at its middle grid point (a cut a model should not make).
+
+    OMP_NUM_THREADS=1 .venv/bin/python experiments/diagnose_block_emission.py --case straight_const_3d 1 2 \
+        --case scoop_const_3d 4 2 --halves
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import math
+
+import torch
+from torch import Tensor
+
+from lfd_torch.segmentation.segmentation import path_length, scale_velocities, velocity_noise
+from diagnose_segmentation import case_labellings, score_gap
+from bench_segmentation import case_data
+
+
+def blocks(x: Tensor, grid: list[int], velocity_length: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Block means (n, d), their mean path length (n,) and sample counts (n,) around the grid samples."""
+    T = x.shape[0]
+    g = torch.tensor(grid)
+    edges = torch.cat([torch.zeros(1, dtype=torch.long), torch.div(g[1:] + g[:-1] + 1, 2, rounding_mode="floor"),
+                       torch.tensor([T])])
+    means, lens, counts = [], [], []
+    for a, b in zip(edges[:-1].tolist(), edges[1:].tolist()):
+        means.append(x[a:b].mean(0))
+        lens.append(velocity_length[a:b].mean())
+        counts.append(b - a)
+    return torch.stack(means), torch.stack(lens), torch.tensor(counts, dtype=x.dtype)
+
+
+def case_blocks(seg, run, syn) -> list[dict]:
+    """Per demonstration: standardised block means, path lengths, counts, regressors z (n, p) of the grid points."""
+    out = []
+    k_of = seg.info["strides"]
+    sigma, rho = seg.info["position_noise"], seg.info["noise_correlation"]
+    centre, radius = run.obs.centre, float(run.obs.radius)
+    for i in range(run.N):
+        T = int(syn.demos.lengths[i])
+        x = syn.demos.positions[i, :T].to(torch.float64)
+        t = syn.demos.times[i, :T].to(torch.float64)
+        dt = float((t[1:] - t[:-1]).median())
+        k = int(k_of[i])
+        v = scale_velocities(x, k, dt)
+        noise = velocity_noise(sigma, T, k, dt, rho=rho).to(x)
+        L = path_length(v, noise, dt)
+        xb, sb, mb = blocks(x, seg.info["grid"][i], L)
+        n = xb.shape[0]
+        out.append({"x": (xb - centre) / radius, "s": sb / radius, "m": mb, "z": run.obs.z[i, :n],
+                    "noise": sigma / radius})
+    return out
+
+
+def block_evidence(data: list[dict], labels: Tensor, *, tolerance: float = 0.2, slope_scale: float = 1.0) -> float:
+    """log p(block means | labelling) summed over the 2^K straight / affine combinations (module docstring)."""
+    d = data[0]["x"].shape[-1]
+    p = d + 1
+    states = sorted({int(v) for i, blk in enumerate(data) for v in labels[i, : blk["x"].shape[0]].tolist()})
+    N = len(data)
+    sizes = [blk["x"].shape[0] for blk in data]
+    offsets = [0] + list(itertools.accumulate(sizes))
+    total = offsets[-1]
+    # per state and demonstration: increments owned, their ds and mid regressors
+    owned = {}
+    for i, blk in enumerate(data):
+        n = sizes[i]
+        lab = labels[i, :n]
+        ds = (blk["s"][1:] - blk["s"][:-1]).clamp_min(0.0)  # (n - 1,)
+        zmid = 0.5 * (blk["z"][1:] + blk["z"][:-1])  # (n - 1, p)
+        for st in states:
+            mask = (lab[1:] == st).to(ds)
+            owned[(st, i)] = (ds * mask, zmid)
+    y = torch.cat([blk["x"] for blk in data])  # (total, d)
+    base = torch.diag(torch.cat([torch.full((sizes[i],), data[i]["noise"] ** 2) / data[i]["m"] for i in range(N)]))
+    x0_cols = torch.zeros(total, N, dtype=y.dtype)
+    mean = torch.zeros(total, d, dtype=y.dtype)
+    for i in range(N):
+        x0_cols[offsets[i]: offsets[i + 1], i] = 1.0
+        mean[offsets[i]: offsets[i + 1]] = data[i]["x"][0]
+    # regressors of each state under both components, and its random-walk covariance under the affine one
+    straight_cols, affine_cols, walk = {}, {}, {}
+    for st in states:
+        cs = torch.zeros(total, 1, dtype=y.dtype)
+        ca = torch.zeros(total, p, dtype=y.dtype)
+        cw = torch.zeros(total, total, dtype=y.dtype)
+        for i in range(N):
+            ds, zmid = owned[(st, i)]
+            o, n = offsets[i], sizes[i]
+            cs[o + 1: o + n, 0] = ds.cumsum(0)
+            ca[o + 1: o + n] = (ds.unsqueeze(-1) * zmid).cumsum(0)
+            var = torch.cat([torch.zeros(1, dtype=y.dtype), (ds * tolerance) ** 2]).cumsum(0)  # (n,) walk variance
+            cw[o: o + n, o: o + n] = torch.minimum(var.unsqueeze(0), var.unsqueeze(1))
+        straight_cols[st], affine_cols[st], walk[st] = cs, ca, cw
+    prior_straight = torch.tensor([1.0 / d], dtype=y.dtype)
+    prior_affine = torch.tensor([slope_scale**2] * d + [1.0], dtype=y.dtype)
+    scores = []
+    for combo in itertools.product((0, 1), repeat=len(states)):  # 0 straight, 1 affine
+        cols, var = [x0_cols], [torch.ones(N, dtype=y.dtype)]
+        cov = base.clone()
+        for st, c in zip(states, combo):
+            if c == 0:
+                cols.append(straight_cols[st]); var.append(prior_straight)
+            else:
+                cols.append(affine_cols[st]); var.append(prior_affine)
+                cov = cov + walk[st]
+        X = torch.cat(cols, 1)
+        cov = cov + (X * torch.cat(var)) @ X.T
+        chol = torch.linalg.cholesky(cov)
+        r = torch.linalg.solve_triangular(chol, y - mean, upper=False)
+        logdet = 2.0 * torch.log(torch.diagonal(chol)).sum()
+        ll = -0.5 * (r * r).sum() - 0.5 * d * (logdet + total * math.log(2 * math.pi))
+        scores.append(float(ll) + len(states) * math.log(0.5))
+    return float(torch.logsumexp(torch.tensor(scores), 0))
+
+
+def halves(labels: Tensor, lengths: Tensor) -> Tensor:
+    """Every run of every sequence cut in two at its middle (the second half of state k a new state shared by the
+    demonstrations: k + the number of states)."""
+    out = labels.clone()
+    shift = int(labels.max()) + 1
+    for i in range(labels.shape[0]):
+        n = int(lengths[i])
+        lab = labels[i, :n]
+        starts = [0] + [t for t in range(1, n) if lab[t] != lab[t - 1]] + [n]
+        for a, b in zip(starts[:-1], starts[1:]):
+            if b - a >= 4:
+                out[i, (a + b) // 2: b] = int(lab[a]) + shift
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--case", nargs=3, action="append", default=[], metavar=("FAMILY", "N_DEMOS", "SEED"))
+    ap.add_argument("--halves", action="store_true")
+    ap.add_argument("--lasa", nargs="+", default=[], metavar="SHAPE",
+                    help="LASA shapes (all 7 demonstrations, sampler seed 0): the returned labelling against its halves")
+    ap.add_argument("--tolerance", type=float, default=0.2, help="the affine states' direction tolerance (rad)")
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    rows = []
+    print("| family | demos | seed | true steps | found steps | sampler emission gap | block emission gap |"
+          + (" halves - truth |" if args.halves else ""))
+    print("|---|---|---|---|---|---|---|" + ("---|" if args.halves else ""))
+    for family, n_demos, seed in args.case:
+        n_demos, seed = int(n_demos), int(seed)
+        seg, run, truth = case_labellings(family, seed, n_demos)
+        syn = case_data(family, seed, n_demos)
+        data = case_blocks(seg, run, syn)
+        found_ev = block_evidence(data, seg.sampler.states, tolerance=args.tolerance)
+        true_ev = block_evidence(data, truth, tolerance=args.tolerance)
+        sampler_gap = score_gap(family, seed, n_demos)["gap_parts"]["emission"]
+        row = {"family": family, "n_demos": n_demos, "seed": seed, "true_steps": int(truth.max()) + 1,
+               "found_steps": [len(seg.step_sequence(i)) for i in range(run.N)],
+               "sampler_emission_gap": sampler_gap, "block_gap": round(found_ev - true_ev, 1)}
+        line = (f"| {family} | {n_demos} | {seed} | {row['true_steps']} | {row['found_steps']} | {sampler_gap} | "
+                f"{row['block_gap']} |")
+        if args.halves:
+            row["halves_gain"] = round(block_evidence(data, halves(truth, run.lengths), tolerance=args.tolerance) - true_ev, 1)
+            line += f" {row['halves_gain']} |"
+        rows.append(row)
+        print(line, flush=True)
+    for shape in args.lasa:
+        from lfd_torch.data.lasa import load_lasa
+        from diagnose_segmentation import captured_runs
+        from lfd_torch.segmentation import segment
+
+        demos = load_lasa(shape)
+        with captured_runs() as runs:
+            seg = segment(demos, generator=torch.Generator().manual_seed(0))
+        run = runs[-1]
+        data = case_blocks(seg, run, type("Case", (), {"demos": demos})())
+        found = seg.sampler.states
+        ev = block_evidence(data, found, tolerance=args.tolerance)
+        gain = block_evidence(data, halves(found, run.lengths), tolerance=args.tolerance) - ev
+        steps = [len(seg.step_sequence(i)) for i in range(run.N)]
+        rows.append({"lasa": shape, "found_steps": steps, "halves_gain": round(gain, 1)})
+        print(f"| {shape} | 7 | 0 | - | {steps} | - | - | {gain:.1f} |", flush=True)
+    if args.json:
+        from lfd_torch.store import atomic_write, git_sha
+
+        atomic_write(args.json, lambda p: p.write_text(json.dumps({"git_sha": git_sha(), "cases": rows}, indent=1)))
+
+
+if __name__ == "__main__":
+    main()
