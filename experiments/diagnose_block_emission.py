@@ -9,11 +9,13 @@ Observations: the means x_j of the samples nearest each grid point (block j hold
 j than to its neighbours; m_j samples), standardised as the sampler's positions (:class:`~lfd_torch.segmentation.
 field.FieldObservations` centre and radius), with their mean path length s_j (:func:`~lfd_torch.segmentation.
 segmentation.path_length` of the sampler's velocities). The increment from block i to i + 1 belongs to the state of
-block i + 1. A state moves the position along its field, integrated over the increments it owns:
+both blocks when they share one. A state moves the position along its field, integrated over the increments it owns:
 
     x_j = x_0 + sum_k beta_k^T R_kj + W_j + e_j,   e_j ~ N(0, sigma^2 / m_j),   per axis, independent axes,
 
-with the sampler's position noise sigma (``info["position_noise"]``). Each state is straight or affine (spike and
+with the sampler's position noise sigma (``info["position_noise"]``). An increment across a switch belongs to
+neither state: the corner lies somewhere between the two grid points, so that increment is a free displacement
+(prior N(0, ds^2) per axis), about 3 log(ds / sigma_b) nats per switch. Each state is straight or affine (spike and
 slab, probability 1/2 each, every combination of the states summed):
     straight  R_kj = the path length the state owned before block j (scalar), beta_k ~ N(0, 1 / d): a line through
               the state's blocks, continuous at every switch, no tolerance;
@@ -48,6 +50,9 @@ from diagnose_segmentation import case_labellings, score_gap
 from bench_segmentation import case_data
 
 
+MAX_EXACT_STATES = 8  # above this many states the sum over combinations is replaced by its best term
+
+
 def blocks(x: Tensor, grid: list[int], velocity_length: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Block means (n, d), their mean path length (n,) and sample counts (n,) around the grid samples."""
     T = x.shape[0]
@@ -62,8 +67,10 @@ def blocks(x: Tensor, grid: list[int], velocity_length: Tensor) -> tuple[Tensor,
     return torch.stack(means), torch.stack(lens), torch.tensor(counts, dtype=x.dtype)
 
 
-def case_blocks(seg, run, syn) -> list[dict]:
-    """Per demonstration: standardised block means, path lengths, counts, regressors z (n, p) of the grid points."""
+def case_blocks(seg, run, syn, length: str = "speed") -> list[dict]:
+    """Per demonstration: standardised block means, path lengths, counts, regressors z (n, p) of the grid points.
+    ``length``: "speed" the mean path length of each block's samples (the sampler's speed estimates), "chord" the
+    cumulative lengths of the chords between consecutive block means, each less its noise bias."""
     out = []
     k_of = seg.info["strides"]
     sigma, rho = seg.info["position_noise"], seg.info["noise_correlation"]
@@ -79,13 +86,24 @@ def case_blocks(seg, run, syn) -> list[dict]:
         L = path_length(v, noise, dt)
         xb, sb, mb = blocks(x, seg.info["grid"][i], L)
         n = xb.shape[0]
-        out.append({"x": (xb - centre) / radius, "s": sb / radius, "m": mb, "z": run.obs.z[i, :n],
-                    "noise": sigma / radius})
+        xs, noise = (xb - centre) / radius, sigma / radius
+        if length == "chord":  # the path length along the block means, less the noise's share of each chord
+            sq = (xs[1:] - xs[:-1]).square().sum(-1) - xs.shape[-1] * noise**2 * (1 / mb[1:] + 1 / mb[:-1])
+            chord = sq.clamp_min(0.0).sqrt()
+            s = torch.cat([xs.new_zeros(1), chord.cumsum(0)])
+        else:
+            s = sb / radius
+        out.append({"x": xs, "s": s, "m": mb, "z": run.obs.z[i, :n], "noise": noise})
     return out
 
 
-def block_evidence(data: list[dict], labels: Tensor, *, tolerance: float = 0.2, slope_scale: float = 1.0) -> float:
-    """log p(block means | labelling) summed over the 2^K straight / affine combinations (module docstring)."""
+def block_evidence(data: list[dict], labels: Tensor, *, tolerance: float = 0.2, slope_scale: float = 1.0,
+                   demo_spread: float = 0.0, components: tuple[int, ...] | None = None) -> float:
+    """log p(block means | labelling) summed over the 2^K straight / affine combinations (module docstring), each
+    with prior probability 2^-K (for more than MAX_EXACT_STATES states the log density of the best combination
+    found by coordinate ascent instead, an upper bound of the sum when that is the best; the halves of LASA's
+    labellings are scored so, which overstates what cutting gains); with ``components`` (0 straight, 1 affine per state, in increasing state order)
+    the log density of that combination alone (no prior term)."""
     d = data[0]["x"].shape[-1]
     p = d + 1
     states = sorted({int(v) for i, blk in enumerate(data) for v in labels[i, : blk["x"].shape[0]].tolist()})
@@ -100,11 +118,12 @@ def block_evidence(data: list[dict], labels: Tensor, *, tolerance: float = 0.2, 
         lab = labels[i, :n]
         ds = (blk["s"][1:] - blk["s"][:-1]).clamp_min(0.0)  # (n - 1,)
         zmid = 0.5 * (blk["z"][1:] + blk["z"][:-1])  # (n - 1, p)
-        for st in states:
-            mask = (lab[1:] == st).to(ds)
+        for st in states:  # an increment across a switch belongs to neither state (below)
+            mask = ((lab[1:] == st) & (lab[:-1] == st)).to(ds)
             owned[(st, i)] = (ds * mask, zmid)
     y = torch.cat([blk["x"] for blk in data])  # (total, d)
-    base = torch.diag(torch.cat([torch.full((sizes[i],), data[i]["noise"] ** 2) / data[i]["m"] for i in range(N)]))
+    base = torch.diag(torch.cat([torch.full((sizes[i],), data[i]["noise"] ** 2, dtype=y.dtype) / data[i]["m"]
+                                for i in range(N)]))
     x0_cols = torch.zeros(total, N, dtype=y.dtype)
     mean = torch.zeros(total, d, dtype=y.dtype)
     for i in range(N):
@@ -113,22 +132,35 @@ def block_evidence(data: list[dict], labels: Tensor, *, tolerance: float = 0.2, 
     # regressors of each state under both components, and its random-walk covariance under the affine one
     straight_cols, affine_cols, walk = {}, {}, {}
     for st in states:
-        cs = torch.zeros(total, 1, dtype=y.dtype)
+        cs = torch.zeros(total, 1 + N, dtype=y.dtype)  # the shared direction, then each demonstration's own
         ca = torch.zeros(total, p, dtype=y.dtype)
         cw = torch.zeros(total, total, dtype=y.dtype)
         for i in range(N):
             ds, zmid = owned[(st, i)]
             o, n = offsets[i], sizes[i]
             cs[o + 1: o + n, 0] = ds.cumsum(0)
+            cs[o + 1: o + n, 1 + i] = ds.cumsum(0)
             ca[o + 1: o + n] = (ds.unsqueeze(-1) * zmid).cumsum(0)
             var = torch.cat([torch.zeros(1, dtype=y.dtype), (ds * tolerance) ** 2]).cumsum(0)  # (n,) walk variance
             cw[o: o + n, o: o + n] = torch.minimum(var.unsqueeze(0), var.unsqueeze(1))
         straight_cols[st], affine_cols[st], walk[st] = cs, ca, cw
-    prior_straight = torch.tensor([1.0 / d], dtype=y.dtype)
+    # the corner lies somewhere between the two grid points of a switch: the increment across it is a free
+    # displacement, prior N(0, ds^2) per axis, carried by every later block of its demonstration
+    free_cols, free_var = [], []
+    for i, blk in enumerate(data):
+        n, o = sizes[i], offsets[i]
+        lab = labels[i, :n]
+        ds = (blk["s"][1:] - blk["s"][:-1]).clamp_min(1e-9)
+        for j in (lab[1:] != lab[:-1]).nonzero().squeeze(-1).tolist():
+            col = torch.zeros(total, 1, dtype=y.dtype)
+            col[o + j + 1: o + n, 0] = 1.0
+            free_cols.append(col)
+            free_var.append(float(ds[j]) ** 2)
+    prior_straight = torch.tensor([1.0 / d] + [demo_spread**2] * N, dtype=y.dtype)
     prior_affine = torch.tensor([slope_scale**2] * d + [1.0], dtype=y.dtype)
-    scores = []
-    for combo in itertools.product((0, 1), repeat=len(states)):  # 0 straight, 1 affine
-        cols, var = [x0_cols], [torch.ones(N, dtype=y.dtype)]
+    def combo_ll(combo: tuple[int, ...]) -> float:
+        cols = [x0_cols] + free_cols
+        var = [torch.ones(N, dtype=y.dtype), torch.tensor(free_var, dtype=y.dtype)]
         cov = base.clone()
         for st, c in zip(states, combo):
             if c == 0:
@@ -141,9 +173,27 @@ def block_evidence(data: list[dict], labels: Tensor, *, tolerance: float = 0.2, 
         chol = torch.linalg.cholesky(cov)
         r = torch.linalg.solve_triangular(chol, y - mean, upper=False)
         logdet = 2.0 * torch.log(torch.diagonal(chol)).sum()
-        ll = -0.5 * (r * r).sum() - 0.5 * d * (logdet + total * math.log(2 * math.pi))
-        scores.append(float(ll) + len(states) * math.log(0.5))
-    return float(torch.logsumexp(torch.tensor(scores), 0))
+        return float(-0.5 * (r * r).sum() - 0.5 * d * (logdet + total * math.log(2 * math.pi)))
+
+    if components is not None:
+        return combo_ll(tuple(components))
+    K = len(states)
+    if K <= MAX_EXACT_STATES:
+        scores = [combo_ll(c) for c in itertools.product((0, 1), repeat=K)]
+        return float(torch.logsumexp(torch.tensor(scores, dtype=torch.float64), 0)) + K * math.log(0.5)
+    # too many combinations: the best one found by coordinate ascent from all affine, whose log density is an upper
+    # bound of the sum's when it is the largest term (the sum of 2^K terms of weight 2^-K is at most the largest)
+    combo, best = [1] * K, combo_ll(tuple([1] * K))
+    improved = True
+    while improved:
+        improved = False
+        for k in range(K):
+            trial = combo.copy()
+            trial[k] = 1 - trial[k]
+            value = combo_ll(tuple(trial))
+            if value > best:
+                combo, best, improved = trial, value, True
+    return best
 
 
 def halves(labels: Tensor, lengths: Tensor) -> Tensor:
@@ -168,6 +218,10 @@ def main() -> None:
     ap.add_argument("--lasa", nargs="+", default=[], metavar="SHAPE",
                     help="LASA shapes (all 7 demonstrations, sampler seed 0): the returned labelling against its halves")
     ap.add_argument("--tolerance", type=float, default=0.2, help="the affine states' direction tolerance (rad)")
+    ap.add_argument("--length", choices=("speed", "chord"), default="speed",
+                    help="the path length of the blocks (case_blocks)")
+    ap.add_argument("--demo-spread", type=float, default=0.0,
+                    help="a straight state's direction in each demonstration: the shared one plus N(0, spread^2)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -179,9 +233,9 @@ def main() -> None:
         n_demos, seed = int(n_demos), int(seed)
         seg, run, truth = case_labellings(family, seed, n_demos)
         syn = case_data(family, seed, n_demos)
-        data = case_blocks(seg, run, syn)
-        found_ev = block_evidence(data, seg.sampler.states, tolerance=args.tolerance)
-        true_ev = block_evidence(data, truth, tolerance=args.tolerance)
+        data = case_blocks(seg, run, syn, args.length)
+        found_ev = block_evidence(data, seg.sampler.states, tolerance=args.tolerance, demo_spread=args.demo_spread)
+        true_ev = block_evidence(data, truth, tolerance=args.tolerance, demo_spread=args.demo_spread)
         sampler_gap = score_gap(family, seed, n_demos)["gap_parts"]["emission"]
         row = {"family": family, "n_demos": n_demos, "seed": seed, "true_steps": int(truth.max()) + 1,
                "found_steps": [len(seg.step_sequence(i)) for i in range(run.N)],
@@ -189,7 +243,7 @@ def main() -> None:
         line = (f"| {family} | {n_demos} | {seed} | {row['true_steps']} | {row['found_steps']} | {sampler_gap} | "
                 f"{row['block_gap']} |")
         if args.halves:
-            row["halves_gain"] = round(block_evidence(data, halves(truth, run.lengths), tolerance=args.tolerance) - true_ev, 1)
+            row["halves_gain"] = round(block_evidence(data, halves(truth, run.lengths), tolerance=args.tolerance, demo_spread=args.demo_spread) - true_ev, 1)
             line += f" {row['halves_gain']} |"
         rows.append(row)
         print(line, flush=True)
@@ -202,10 +256,10 @@ def main() -> None:
         with captured_runs() as runs:
             seg = segment(demos, generator=torch.Generator().manual_seed(0))
         run = runs[-1]
-        data = case_blocks(seg, run, type("Case", (), {"demos": demos})())
+        data = case_blocks(seg, run, type("Case", (), {"demos": demos})(), args.length)
         found = seg.sampler.states
-        ev = block_evidence(data, found, tolerance=args.tolerance)
-        gain = block_evidence(data, halves(found, run.lengths), tolerance=args.tolerance) - ev
+        ev = block_evidence(data, found, tolerance=args.tolerance, demo_spread=args.demo_spread)
+        gain = block_evidence(data, halves(found, run.lengths), tolerance=args.tolerance, demo_spread=args.demo_spread) - ev
         steps = [len(seg.step_sequence(i)) for i in range(run.N)]
         rows.append({"lasa": shape, "found_steps": steps, "halves_gain": round(gain, 1)})
         print(f"| {shape} | 7 | 0 | - | {steps} | - | - | {gain:.1f} |", flush=True)

@@ -487,3 +487,38 @@ def test_readme_oracle_figures_are_the_stored_tables():
         assert len(rows) == 140 and {r["family"] for r in rows} == set(CONSTANT_SPEED), name
         share = 100 * sum(r["all_switches"] for r in rows) / len(rows)
         assert f"{share:.1f} %" in text, (name, share)
+
+
+def test_block_emission_is_the_gaussian_of_its_written_out_model():
+    """The block-mean emission of ``diagnose_block_emission.py`` for one demonstration with one switch, straight then
+    affine, is the Gaussian density of the model written out by hand: x_j = x_0 + (d + delta) S0_j + c [j > 3] +
+    B Z1_j + W_j + e_j per axis, S0 / Z1 the path length / regressors each state owned, c the corner's free
+    displacement, W the affine state's random walk (scipy's multivariate normal as the reference)."""
+    import numpy as np
+    from scipy.stats import multivariate_normal
+
+    from diagnose_block_emission import block_evidence
+
+    g = torch.Generator().manual_seed(5)
+    n, d = 8, 2
+    s = torch.tensor([0.0, 0.1, 0.2, 0.3, 0.42, 0.5, 0.61, 0.7], dtype=torch.float64)
+    m = torch.tensor([3, 4, 4, 4, 4, 4, 4, 3], dtype=torch.float64)
+    z = torch.cat([torch.randn(n, d, generator=g, dtype=torch.float64), torch.ones(n, 1, dtype=torch.float64)], -1)
+    x = torch.randn(n, d, generator=g, dtype=torch.float64).cumsum(0) * 0.1
+    data = [{"x": x, "s": s, "m": m, "z": z, "noise": 0.05}]
+    labels = torch.tensor([[0, 0, 0, 0, 1, 1, 1, 1]])
+    tol, spread, slope = 0.2, 0.05, 1.0
+    mine = block_evidence(data, labels, tolerance=tol, demo_spread=spread, slope_scale=slope, components=(0, 1))
+
+    ds = (s[1:] - s[:-1]).numpy()
+    S0 = np.concatenate([[0.0], np.cumsum(ds * (np.arange(n - 1) < 3))])  # increments 0-1, 1-2, 2-3
+    own1 = (np.arange(n - 1) >= 4).astype(float)  # increments 4-5, 5-6, 6-7; 3-4 is the corner
+    zmid = 0.5 * (z[1:] + z[:-1]).numpy()
+    Z1 = np.concatenate([np.zeros((1, d + 1)), np.cumsum((ds * own1)[:, None] * zmid, 0)])
+    corner = (np.arange(n) > 3).astype(float)
+    walk = np.concatenate([[0.0], np.cumsum((ds * own1 * tol) ** 2)])
+    cov = (np.ones((n, n)) + (1.0 / d + spread**2) * np.outer(S0, S0) + ds[3] ** 2 * np.outer(corner, corner)
+           + Z1 @ np.diag([slope**2] * d + [1.0]) @ Z1.T + np.minimum.outer(walk, walk)
+           + np.diag(0.05**2 / m.numpy()))
+    ref = sum(multivariate_normal(np.full(n, x[0, a].item()), cov).logpdf(x[:, a].numpy()) for a in range(d))
+    assert mine == pytest.approx(ref, abs=1e-8)
