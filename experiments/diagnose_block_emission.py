@@ -27,8 +27,9 @@ x_0 ~ N(x_(first block), 1) per demonstration. All parameters are Gaussian, so t
 a Gaussian density over all blocks of all demonstrations (coefficients shared by the demonstrations of a state).
 
 For every case (the benchmark's data seed, sampler seed as ``diagnose_segmentation.py``) it prints the number of
-steps found and true, the sampler's emission gap (found - true, the collapsed score's emission term) and this
-emission's gap; negative: the emission prefers the true steps. With ``--halves`` it also scores the truth with every
+steps found and true, the sampler's emission gap (found - true, the collapsed score's emission term), this
+emission's gap, the gap of the rest of the sampler's collapsed score (dwell, transitions, initial state, features;
+``diagnose_segmentation.py --parts``) and this emission's gap plus that rest; negative: the true steps preferred. With ``--halves`` it also scores the truth with every
 step of every demonstration cut in two at its middle grid point (a cut a model should not make).
 
     OMP_NUM_THREADS=1 .venv/bin/python experiments/diagnose_block_emission.py --case straight_const_3d 1 2 \
@@ -226,9 +227,9 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     rows = []
-    print("| family | demos | seed | true steps | found steps | sampler emission gap | block emission gap |"
-          + (" halves - truth |" if args.halves else ""))
-    print("|---|---|---|---|---|---|---|" + ("---|" if args.halves else ""))
+    print("| family | demos | seed | true steps | found steps | sampler emission gap | block emission gap | "
+          "rest of the score | block emission + rest |" + (" halves - truth |" if args.halves else ""))
+    print("|---|---|---|---|---|---|---|---|---|" + ("---|" if args.halves else ""))
     for family, n_demos, seed in args.case:
         n_demos, seed = int(n_demos), int(seed)
         seg, run, truth = case_labellings(family, seed, n_demos)
@@ -236,12 +237,15 @@ def main() -> None:
         data = case_blocks(seg, run, syn, args.length)
         found_ev = block_evidence(data, seg.sampler.states, tolerance=args.tolerance, demo_spread=args.demo_spread)
         true_ev = block_evidence(data, truth, tolerance=args.tolerance, demo_spread=args.demo_spread)
-        sampler_gap = score_gap(family, seed, n_demos)["gap_parts"]["emission"]
+        parts = score_gap(family, seed, n_demos)["gap_parts"]
+        sampler_gap = parts["emission"]
+        rest = round(sum(v for k, v in parts.items() if k != "emission"), 1)  # dwell, transitions, initial, features
         row = {"family": family, "n_demos": n_demos, "seed": seed, "true_steps": int(truth.max()) + 1,
                "found_steps": [len(seg.step_sequence(i)) for i in range(run.N)],
-               "sampler_emission_gap": sampler_gap, "block_gap": round(found_ev - true_ev, 1)}
+               "sampler_emission_gap": sampler_gap, "block_gap": round(found_ev - true_ev, 1), "rest_gap": rest,
+               "block_total_gap": round(found_ev - true_ev + rest, 1)}
         line = (f"| {family} | {n_demos} | {seed} | {row['true_steps']} | {row['found_steps']} | {sampler_gap} | "
-                f"{row['block_gap']} |")
+                f"{row['block_gap']} | {rest} | {row['block_total_gap']} |")
         if args.halves:
             row["halves_gain"] = round(block_evidence(data, halves(truth, run.lengths), tolerance=args.tolerance, demo_spread=args.demo_spread) - true_ev, 1)
             line += f" {row['halves_gain']} |"
@@ -262,7 +266,7 @@ def main() -> None:
         gain = block_evidence(data, halves(found, run.lengths), tolerance=args.tolerance, demo_spread=args.demo_spread) - ev
         steps = [len(seg.step_sequence(i)) for i in range(run.N)]
         rows.append({"lasa": shape, "found_steps": steps, "halves_gain": round(gain, 1)})
-        print(f"| {shape} | 7 | 0 | - | {steps} | - | - | {gain:.1f} |", flush=True)
+        print(f"| {shape} | 7 | 0 | - | {steps} | - | - | - | - | {gain:.1f} |", flush=True)
     if args.json:
         from lfd_torch.store import atomic_write, git_sha
 
