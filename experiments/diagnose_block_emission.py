@@ -58,14 +58,12 @@ def blocks(x: Tensor, grid: list[int], velocity_length: Tensor) -> tuple[Tensor,
     """Block means (n, d), their mean path length (n,) and sample counts (n,) around the grid samples."""
     T = x.shape[0]
     g = torch.tensor(grid)
-    edges = torch.cat([torch.zeros(1, dtype=torch.long), torch.div(g[1:] + g[:-1] + 1, 2, rounding_mode="floor"),
-                       torch.tensor([T])])
-    means, lens, counts = [], [], []
-    for a, b in zip(edges[:-1].tolist(), edges[1:].tolist()):
-        means.append(x[a:b].mean(0))
-        lens.append(velocity_length[a:b].mean())
-        counts.append(b - a)
-    return torch.stack(means), torch.stack(lens), torch.tensor(counts, dtype=x.dtype)
+    edges = torch.div(g[1:] + g[:-1] + 1, 2, rounding_mode="floor")  # first sample of every block after the first
+    block = torch.bucketize(torch.arange(T), edges, right=True)  # (T,) the block of every sample
+    counts = torch.bincount(block, minlength=g.numel()).to(x.dtype)
+    means = x.new_zeros(g.numel(), x.shape[1]).index_add_(0, block, x) / counts.unsqueeze(-1)
+    lens = velocity_length.new_zeros(g.numel()).index_add_(0, block, velocity_length) / counts
+    return means, lens, counts
 
 
 def case_blocks(seg, run, syn, length: str = "speed") -> list[dict]:

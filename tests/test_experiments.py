@@ -474,7 +474,8 @@ def test_oracle_leg_costs_and_partition_against_polyfit_and_ruptures():
 
 def test_readme_oracle_figures_are_the_stored_tables():
     """The README's known-count oracle shares (every switch found, all 140 constant-speed cases) are what the stored
-    ``oracle_switches_*.json`` tables say, and each table holds the 140 cases of the seven families."""
+    ``oracle_switches_*.json`` tables say, and each table holds the 140 cases of the seven families; so are its counts
+    of the misses whose true steps the block emission prefers (``diagnose_block_emission_missed.json``)."""
     import json
 
     from oracle_switches import CONSTANT_SPEED
@@ -487,6 +488,12 @@ def test_readme_oracle_figures_are_the_stored_tables():
         assert len(rows) == 140 and {r["family"] for r in rows} == set(CONSTANT_SPEED), name
         share = 100 * sum(r["all_switches"] for r in rows) / len(rows)
         assert f"{share:.1f} %" in text, (name, share)
+    block = json.loads((ROOT / "results/tables/diagnose_block_emission_missed.json").read_text())["cases"]
+    text = readme[readme.index("Scored as that emission"):][:900]
+    assert len(block) == 38
+    assert f"in {sum(r['block_gap'] < 0 for r in block)} of the defaults' 38 misses" in text
+    assert f"(the sampler's direction emission: {sum(r['sampler_emission_gap'] < 0 for r in block)})" in text
+    assert f"still win in {sum(r['block_total_gap'] < 0 for r in block)} of the 38" in text
 
 
 def test_block_emission_is_the_gaussian_of_its_written_out_model():
