@@ -127,16 +127,20 @@ def block_log_evidence(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, va
     off = -(var[:, 1:-1] * (inc[:, 1:] & inc[:, :-1])).expand(B, N, M - 1)
     omega = torch.diag_embed(diag) + torch.diag_embed(off, 1) + torch.diag_embed(off, -1)
     chol = torch.linalg.cholesky(omega)  # (B, N, M, M)
-    # X: per state, [shared direction, one per sequence] (straight) then p field coefficients (curved)
-    width = 1 + N + p
+    # X: per state, [shared direction, one per sequence] (straight), then p field coefficients and one offset per
+    # sequence (curved)
+    width = 1 + N + p + N
     onehot = torch.nn.functional.one_hot(own, K).to(dt)  # (B, N, M, K)
     s_cols = onehot * (is_straight * ds).unsqueeze(-1)  # (B, N, M, K)
     X = xbar.new_zeros(B, N, M, K, width)
     X[..., 0] = s_cols
     X[..., 1: 1 + N] = s_cols.unsqueeze(-1) * torch.eye(N, dtype=dt, device=xbar.device).view(1, N, 1, 1, N)
-    X[..., 1 + N:] = (onehot * (is_curved * ds).unsqueeze(-1)).unsqueeze(-1) * zmid.view(1, N, M, 1, p)
+    c_cols = onehot * (is_curved * ds).unsqueeze(-1)
+    X[..., 1 + N: 1 + N + p] = c_cols.unsqueeze(-1) * zmid.view(1, N, M, 1, p)
+    X[..., 1 + N + p:] = c_cols.unsqueeze(-1) * torch.eye(N, dtype=dt, device=xbar.device).view(1, N, 1, 1, N)
     X = X.reshape(B, N, M, K * width)
-    prior = torch.tensor([1.0 / d] + [spread**2] * N + [slope_scale**2] * d + [1.0], dtype=dt, device=xbar.device)
+    prior = torch.tensor([1.0 / d] + [spread**2] * N + [slope_scale**2] * d + [1.0] + [spread**2] * N, dtype=dt,
+                         device=xbar.device)
     prior = prior.repeat(K)  # (Q,)
     oy = torch.cholesky_solve(y.expand(B, N, M, d), chol)  # Omega^-1 y
     ox = torch.cholesky_solve(X, chol)  # Omega^-1 X

@@ -265,6 +265,7 @@ _SHIFT_CHUNK = 512  # map search: shift candidates scored per batch (memory ~ ch
 _POLISH_STEPS = 3  # map search: most shift moves that polish the best split (each ~0.1 s on 7 LASA demonstrations)
 _SETTLE_STEPS = 10  # map search: most relabellings that settle the best look-ahead merge (each ~10 ms on 7 LASA demos)
 _POSITION_SCALE = 0.05  # prior expected covariance of a state's positions / the data's variance, per axis
+_COMPONENT_ROUNDS = 2  # block emission: rounds of one-state component switches (each K evaluations)
 _BLOCK = 2  # features whose flips share one batched forward pass (2^2 - 1 = 3 variants per sequence)
 
 
@@ -717,17 +718,37 @@ class _Run:
         return xbar, sbar, var, zmid
 
     def _block_evidence(self, s: Tensor, age: Tensor | None, w: Tensor, onehot: Tensor) -> Tensor:
-        """(B,) the block emission of the labellings s (B, N, T) (:mod:`.blocks`); a state is straight where the
-        direction emission's spike-and-slab posterior says so."""
+        """(B,) the block emission of the labellings s (B, N, T) (:mod:`.blocks`), each state straight or curved:
+        from the direction emission's spike-and-slab choice, the component of one state at a time is switched while
+        that raises the evidence (a profile over the components, as the Student-t scales are profiled), plus log 1/2
+        per state (the prior of either component)."""
         stats, _ = self._field_terms(age, w, onehot)
         log_straight = field_mixture_evidence(self.score_prior, *stats, self.cfg.straight_weight,
                                               self.wide_score_prior, self.cfg.rotation_weight)[1]  # (B, K)
+        used = stats[0] > 0  # (B, K)
         xbar, sbar, var, zmid = self.blocks
-        import os
-        thr = float(os.environ.get("BLK_THR", "0.5"))
-        return block_log_evidence(xbar, sbar, var, zmid, self.valid, s, log_straight > math.log(thr),
-                                  tolerance=self.cfg.direction_noise, spread=DEMO_SPREAD,
-                                  slope_scale=self.cfg.slope_scale)
+        B, K = used.shape
+
+        def evidence(lab: Tensor, straight: Tensor) -> Tensor:
+            return block_log_evidence(xbar, sbar, var, zmid, self.valid, lab, straight,
+                                      tolerance=self.cfg.direction_noise, spread=DEMO_SPREAD,
+                                      slope_scale=self.cfg.slope_scale)
+
+        straight = (log_straight > math.log(0.5)) & used
+        best = evidence(s, straight)
+        flips = torch.eye(K, dtype=torch.bool, device=s.device)
+        for _ in range(_COMPONENT_ROUNDS):
+            trial = (straight.unsqueeze(1) ^ flips.unsqueeze(0)) & used.unsqueeze(1)  # (B, K, K): state j flipped
+            values = evidence(s.unsqueeze(1).expand(B, K, *s.shape[1:]).reshape(B * K, *s.shape[1:]),
+                              trial.reshape(B * K, K)).reshape(B, K)
+            values = torch.where(used, values, torch.full_like(values, -math.inf))
+            top, j = values.max(-1)
+            better = top > best + 1e-9
+            if not bool(better.any()):
+                break
+            straight = torch.where(better.unsqueeze(-1), trial[torch.arange(B), j], straight)
+            best = torch.where(better, top, best)
+        return best + used.sum(-1).to(best) * math.log(0.5)
 
     def _field_evidence(self, age: Tensor | None, w: Tensor, onehot: Tensor) -> Tensor:
         """(B, K) the states' field evidence (spike-and-slab, :func:`field_mixture_evidence`)."""
