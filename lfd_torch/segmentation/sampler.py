@@ -334,6 +334,7 @@ HYPERPARAMETER_RANGES: dict[str, tuple[type, float, float, bool, bool]] = {
     "rotation_weight": (float, 0.0, 1.0, True, False),
     "tolerance_correlation": (float, 0.0, 1.0, True, False),
     "demo_offset": (float, 0.0, 1e3, True, True),
+    "block_tolerance": (float, 0.0, 2.0, False, True),
     "n_chains": (int, 1, 64, True, True),
     "n_iterations": (int, 1, 10_000, True, True),
     "burn_in": (float, 0.0, 1.0, True, False),
@@ -414,6 +415,8 @@ class BetaProcessHMMSampler:
         block_emission: in the collapsed score (so ``selection="map"``) the states' motion is scored on the block
             means of the positions instead of the grid directions (module docstring, "Block emission"); needs the
             ``blocks`` of :meth:`run`.
+        block_tolerance: sigma_u (rad) of the curved states under ``block_emission``: their directions' deviation
+            from the field, a random walk of the position (:mod:`.blocks`); straight states have none.
         demo_offset: v >= 0, in the collapsed score (so ``selection="map"``) every demonstration adds its own offset
             Delta ~ N(0, v Psi_k) to the field of each state it visits (module docstring, "Demonstrations' own
             offsets"); 0: one field per state for all demonstrations.
@@ -452,6 +455,7 @@ class BetaProcessHMMSampler:
         dwell_pace: bool = False,
         demo_offset: float = 0.0,
         block_emission: bool = False,
+        block_tolerance: float = 0.1,
         n_chains: int = 4,
         n_iterations: int = 100,
         burn_in: float = 0.5,
@@ -469,7 +473,7 @@ class BetaProcessHMMSampler:
             slope_scale_mix=slope_scale_mix, rotation_weight=rotation_weight, robust_dof=robust_dof,
             position_weight=position_weight, position_mixture=position_mixture, straight_weight=straight_weight,
             tolerance_correlation=tolerance_correlation, dwell_pace=dwell_pace, demo_offset=demo_offset,
-            block_emission=block_emission, n_chains=n_chains,
+            block_emission=block_emission, block_tolerance=block_tolerance, n_chains=n_chains,
             n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
             birth_window=birth_window, birth_prior_mix=birth_prior_mix,
             resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
@@ -488,6 +492,7 @@ class BetaProcessHMMSampler:
         self.dwell_pace = bool(dwell_pace)
         self.demo_offset = float(demo_offset)
         self.block_emission = bool(block_emission)
+        self.block_tolerance = float(block_tolerance)
         self.extra_dof = float(extra_dof)
         self.slope_scale = float(slope_scale)
         self.slope_scale_mix = float(slope_scale_mix)
@@ -731,7 +736,7 @@ class _Run:
 
         def evidence(lab: Tensor, straight: Tensor) -> Tensor:
             return block_log_evidence(xbar, sbar, var, zmid, self.valid, lab, straight,
-                                      tolerance=self.cfg.direction_noise, spread=DEMO_SPREAD,
+                                      tolerance=self.cfg.block_tolerance, spread=DEMO_SPREAD,
                                       slope_scale=self.cfg.slope_scale)
 
         straight = (log_straight > math.log(0.5)) & used

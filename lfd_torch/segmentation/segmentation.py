@@ -1010,6 +1010,7 @@ def segment(
     dwell_pace: bool = False,
     demo_offset: float = 0.0,
     block_emission: bool = False,
+    block_tolerance: float = 0.1,
     noise_model: str = "ar1",
     feature_mass: float = 2.0,
     feature_concentration: float = 1.0,
@@ -1072,6 +1073,8 @@ def segment(
             means of the positions around the grid points (:mod:`.blocks`): a straight state is a line through
             them, with the lever arm of its length, a curved one an affine field with the direction tolerance.
             Measured, not the default (experiments/segmentation_studies.md, "Block emission").
+        block_tolerance: with ``block_emission``, the curved states' direction tolerance sigma_u (rad), a random
+            walk of the position along a run (:mod:`.blocks`).
         demo_offset: v >= 0: in the collapsed score (so ``selection="map"``) every demonstration adds its own offset
             ~ N(0, v Psi) to the field of each state it visits (:mod:`.sampler`, "Demonstrations' own offsets"); 0:
             one field per state. Measured, not the default: with a tight tolerance it keeps a curved leg shared by
@@ -1119,6 +1122,7 @@ def segment(
         slope_scale_mix=slope_scale_mix, rotation_weight=rotation_weight, robust_dof=robust_dof,
         position_weight=position_weight, position_mixture=position_mixture, tolerance_correlation=tolerance_correlation,
         dwell_pace=dwell_pace, demo_offset=demo_offset, block_emission=block_emission,
+        block_tolerance=block_tolerance,
         straight_weight=straight_weight, n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
         birth_window=birth_window, birth_prior_mix=birth_prior_mix,
         resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
