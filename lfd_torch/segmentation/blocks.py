@@ -20,16 +20,17 @@ Model (per axis, the axes independent and alike). The increment Delta_j = xbar_(
 of one run of state k is the state's motion over ds_j plus the difference of the two blocks' noises:
 
     straight state   Delta_j = ds_j (b_k + b_ik) + e_(j+1) - e_j,   b_k ~ N(0, 1 / d), b_ik ~ N(0, omega^2)
-    curved state     Delta_j = ds_j B_k zbar_j + ds_j eta_j + e_(j+1) - e_j,   eta_j ~ N(0, sigma_u^2)
+    curved state     Delta_j = ds_j (B_k zbar_j + o_ik) + ds_j eta_j + e_(j+1) - e_j,   eta_j ~ N(0, sigma_u^2)
 
-with e_j ~ N(0, var_j) the blocks' noise, b_ik each demonstration's own small turn of the direction (its corners
-are its own; omega = ``spread``), B_k the affine field on the midpoint regressors zbar_j = (z_j + z_(j+1)) / 2 under
-the field prior's scales (slope entries N(0, s^2), offset N(0, 1)) and eta_j the direction tolerance sigma_u of the
-curved states (a random walk of the position along the run). A straight state has no tolerance: it is a line. An
-increment across a switch belongs to neither state: the corner lies somewhere between the two grid points, so that
-increment is a free displacement, N(0, ds_j^2) per axis. Which of the two a state is follows the direction
-emission's spike-and-slab posterior (straight when P(straight | u) > 1/2, :func:`~.field.field_mixture_evidence`):
-a plug-in of that model's choice, not a sum over the 2^K combinations. With the coefficients Gaussian, the
+with e_j ~ N(0, var_j) the blocks' noise, b_ik and o_ik each demonstration's own small turn of the direction or
+offset of the field, N(0, omega^2) per axis (its corners are its own; omega = ``spread``), B_k the affine field on
+the midpoint regressors zbar_j = (z_j + z_(j+1)) / 2 under the field prior's scales (slope entries N(0, s^2), offset
+N(0, 1)) and eta_j the direction tolerance sigma_u of the curved states (a random walk of the position along the
+run). A straight state has no tolerance: it is a line. An increment across a switch belongs to neither state: the
+corner lies somewhere between the two grid points, so that increment is a free displacement, N(0, ds_j^2) per axis.
+Which of the two a state is, is an argument here; the sampler starts from the direction emission's spike-and-slab
+choice and switches one state at a time while the evidence rises (:meth:`~.sampler._Run._block_evidence`), a
+profile over the components rather than the sum over the 2^K combinations. With the coefficients Gaussian, the
 increments of all sequences are one Gaussian, y ~ N(0, Omega + X Lambda X^T), Omega block-diagonal per sequence and
 tridiagonal (the shared block noise of consecutive increments), so the evidence is
 

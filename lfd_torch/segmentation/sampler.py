@@ -168,6 +168,21 @@ loses none, keeps every LASA demonstration's count on 10 of 10 seeds, but loses 
 three: single demonstrations of straight legs whose rounded corner is merged, a wide fillet and its legs being close
 to one arc), and LASA takes 5.4 s median and 9.8 s at the slowest against 4.0 / 6.5 s, near the 10 s budget.
 
+Block emission (``block_emission``; :mod:`.blocks`). The direction emission sees one local slope per grid point
+and treats them as independent, so a straight leg's direction is known to about sigma_dir / sqrt(n) from n grid
+points, where a line through its samples knows it n / 3 times better. A known-count oracle that fits lines finds the
+mild corners and the scoop's hook that the sampler merges (``experiments/oracle_switches.py``). With
+``block_emission`` the collapsed score replaces the direction emission (its evidence, Student-t profile and
+reliability Jacobian) by the Gaussian evidence of the increments of the block means. A straight state is a line
+with no tolerance (each demonstration its own small turn); a curved state is the affine field with the tolerance
+``block_tolerance`` as a random walk of the position (each demonstration its own offset); an increment across a
+switch is a free displacement. Each state is straight or curved as the direction emission's spike-and-slab
+posterior says, then switched one state at a time while that raises the evidence (a profile over the components).
+The chains sample the direction model, which only seeds the search and proposes its relabellings. The tempered
+position term is meant to be off with it (``position_weight=0``): with it on, the Gaussians' gain from cutting a
+long leg cut the scoop's transfer arc twice more on its four-demonstration case 2. Measured: row "block emission" of
+``experiments/segmentation_variants.py`` and ``experiments/segmentation_studies.md``, "Block emission".
+
 Dwell (``dwell``, :mod:`lfd_torch.segmentation.dwell`, the derivation there). The path-length grid hides how long
 the demonstrator spends somewhere, and a pause is where one subtask ends and the next begins. The model also
 explains the log time between grid points, c_t = mu + delta b_t + noise, b_t = 1 at the first point of a run, with
