@@ -168,6 +168,21 @@ loses none, keeps every LASA demonstration's count on 10 of 10 seeds, but loses 
 three: single demonstrations of straight legs whose rounded corner is merged, a wide fillet and its legs being close
 to one arc), and LASA takes 5.4 s median and 9.8 s at the slowest against 4.0 / 6.5 s, near the 10 s budget.
 
+Block emission (``block_emission``; :mod:`.blocks`). The direction emission sees one local slope per grid point
+and treats them as independent, so a straight leg's direction is known to about sigma_dir / sqrt(n) from n grid
+points, where a line through its samples knows it n / 3 times better. A known-count oracle that fits lines finds the
+mild corners and the scoop's hook that the sampler merges (``experiments/oracle_switches.py``). With
+``block_emission`` the collapsed score replaces the direction emission (its evidence, Student-t profile and
+reliability Jacobian) by the Gaussian evidence of the increments of the block means. A straight state is a line
+with no tolerance (each demonstration its own small turn); a curved state is the affine field with the tolerance
+``block_tolerance`` as a random walk of the position (each demonstration its own offset); an increment across a
+switch is a free displacement. Each state is straight or curved as the direction emission's spike-and-slab
+posterior says, then switched one state at a time while that raises the evidence (a profile over the components).
+The chains sample the direction model, which only seeds the search and proposes its relabellings. The tempered
+position term is meant to be off with it (``position_weight=0``): with it on, the Gaussians' gain from cutting a
+long leg cut the scoop's transfer arc twice more on its four-demonstration case 2. Measured: row "block emission" of
+``experiments/segmentation_variants.py`` and ``experiments/segmentation_studies.md``, "Block emission".
+
 Dwell (``dwell``, :mod:`lfd_torch.segmentation.dwell`, the derivation there). The path-length grid hides how long
 the demonstrator spends somewhere, and a pause is where one subtask ends and the next begins. The model also
 explains the log time between grid points, c_t = mu + delta b_t + noise, b_t = 1 at the first point of a run, with
@@ -242,6 +257,7 @@ from lfd_torch.segmentation.dwell import (
     dwell_prior,
     posterior_summary,
 )
+from lfd_torch.segmentation.blocks import DEMO_SPREAD, BlockMeans, block_log_evidence
 from lfd_torch.segmentation.features import ibp_log_prior, shared_log_odds, unique_feature_rate
 from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood, viterbi
 from lfd_torch.segmentation.transitions import (
@@ -264,6 +280,7 @@ _SHIFT_CHUNK = 512  # map search: shift candidates scored per batch (memory ~ ch
 _POLISH_STEPS = 3  # map search: most shift moves that polish the best split (each ~0.1 s on 7 LASA demonstrations)
 _SETTLE_STEPS = 10  # map search: most relabellings that settle the best look-ahead merge (each ~10 ms on 7 LASA demos)
 _POSITION_SCALE = 0.05  # prior expected covariance of a state's positions / the data's variance, per axis
+_COMPONENT_ROUNDS = 2  # block emission: rounds of one-state component switches (each K evaluations)
 _BLOCK = 2  # features whose flips share one batched forward pass (2^2 - 1 = 3 variants per sequence)
 
 
@@ -332,6 +349,7 @@ HYPERPARAMETER_RANGES: dict[str, tuple[type, float, float, bool, bool]] = {
     "rotation_weight": (float, 0.0, 1.0, True, False),
     "tolerance_correlation": (float, 0.0, 1.0, True, False),
     "demo_offset": (float, 0.0, 1e3, True, True),
+    "block_tolerance": (float, 0.0, 2.0, False, True),
     "n_chains": (int, 1, 64, True, True),
     "n_iterations": (int, 1, 10_000, True, True),
     "burn_in": (float, 0.0, 1.0, True, False),
@@ -354,14 +372,14 @@ SELECTIONS = ("joint", "collapsed", "modal", "map")
 
 def check_hyperparameters(**values: object) -> None:
     """Raise InvalidArgumentError naming the first hyperparameter outside :data:`HYPERPARAMETER_RANGES` (booleans
-    ``resample_hyperparameters``, ``position_mixture``, ``dwell_pace`` and ``progress`` must be bool; ``robust_dof``,
+    ``resample_hyperparameters``, ``position_mixture``, ``dwell_pace``, ``block_emission`` and ``progress`` must be bool; ``robust_dof``,
     ``position_weight`` and ``tolerance_correlation`` may be None; ``selection`` is one of :data:`SELECTIONS`)."""
     for name, value in values.items():
         if name == "selection":
             if value not in SELECTIONS:
                 raise InvalidArgumentError(f"selection must be one of {SELECTIONS}, got {value!r}")
             continue
-        if name in ("resample_hyperparameters", "progress", "position_mixture", "dwell_pace"):
+        if name in ("resample_hyperparameters", "progress", "position_mixture", "dwell_pace", "block_emission"):
             if not isinstance(value, bool):
                 raise InvalidArgumentError(f"{name} must be a bool, got {value!r}")
             continue
@@ -409,6 +427,11 @@ class BetaProcessHMMSampler:
             deviations; None: chosen with the labelling among :data:`TOLERANCES` (``selection="map"``).
         dwell_pace: with the dwell term, the collapsed score also gives every run its own pace level
             (:mod:`.dwell`, "Pace of a run"; the chains' moves keep the run-free dwell term).
+        block_emission: in the collapsed score (so ``selection="map"``) the states' motion is scored on the block
+            means of the positions instead of the grid directions (module docstring, "Block emission"); needs the
+            ``blocks`` of :meth:`run`.
+        block_tolerance: sigma_u (rad) of the curved states under ``block_emission``: their directions' deviation
+            from the field, a random walk of the position (:mod:`.blocks`); straight states have none.
         demo_offset: v >= 0, in the collapsed score (so ``selection="map"``) every demonstration adds its own offset
             Delta ~ N(0, v Psi_k) to the field of each state it visits (module docstring, "Demonstrations' own
             offsets"); 0: one field per state for all demonstrations.
@@ -446,6 +469,8 @@ class BetaProcessHMMSampler:
         tolerance_correlation: float | None = 0.0,
         dwell_pace: bool = False,
         demo_offset: float = 0.0,
+        block_emission: bool = False,
+        block_tolerance: float = 0.1,
         n_chains: int = 4,
         n_iterations: int = 100,
         burn_in: float = 0.5,
@@ -463,7 +488,7 @@ class BetaProcessHMMSampler:
             slope_scale_mix=slope_scale_mix, rotation_weight=rotation_weight, robust_dof=robust_dof,
             position_weight=position_weight, position_mixture=position_mixture, straight_weight=straight_weight,
             tolerance_correlation=tolerance_correlation, dwell_pace=dwell_pace, demo_offset=demo_offset,
-            n_chains=n_chains,
+            block_emission=block_emission, block_tolerance=block_tolerance, n_chains=n_chains,
             n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
             birth_window=birth_window, birth_prior_mix=birth_prior_mix,
             resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
@@ -481,6 +506,8 @@ class BetaProcessHMMSampler:
         self.tolerance_correlation = None if tolerance_correlation is None else float(tolerance_correlation)
         self.dwell_pace = bool(dwell_pace)
         self.demo_offset = float(demo_offset)
+        self.block_emission = bool(block_emission)
+        self.block_tolerance = float(block_tolerance)
         self.extra_dof = float(extra_dof)
         self.slope_scale = float(slope_scale)
         self.slope_scale_mix = float(slope_scale_mix)
@@ -498,7 +525,7 @@ class BetaProcessHMMSampler:
     def run(
         self, sequences: list[Tensor], velocities: list[Tensor], generator: torch.Generator,
         prior: FieldPrior | None = None, min_duration: int = 1, velocity_noise: Tensor | float = 0.0,
-        speed_floor: float = 0.0, dwell: list[Tensor] | None = None,
+        speed_floor: float = 0.0, dwell: list[Tensor] | None = None, blocks: BlockMeans | None = None,
     ) -> SamplerResult:
         """Sample the BP-GM-HMM posterior of a set of sequences.
 
@@ -512,6 +539,8 @@ class BetaProcessHMMSampler:
                 (:func:`~lfd_torch.segmentation.transitions.expand_min_duration`).
             dwell: N tensors (T_i,), the dwell covariate c of every grid point (:mod:`.dwell`); given, the model
                 also explains it (module docstring, "Dwell"; needs D >= 2). None: directions alone.
+            blocks: the block means of the sequences' grid points (:class:`BlockMeans`), needed with
+                ``block_emission``.
 
         Returns:
             SamplerResult of the best sample.
@@ -529,7 +558,9 @@ class BetaProcessHMMSampler:
                 if not bool(torch.isfinite(ci).all()):
                     raise NonFiniteError("dwell contains NaN or Inf", i)
                 c[i, : ci.shape[0]] = ci
-        run = _Run(self, x, v, lengths, generator, prior, min_duration, (velocity_noise, speed_floor), c)
+        if self.block_emission and blocks is None:
+            raise InvalidArgumentError("block_emission needs the blocks of the sequences (BlockMeans)")
+        run = _Run(self, x, v, lengths, generator, prior, min_duration, (velocity_noise, speed_floor), c, blocks)
         return run.sample()
 
 
@@ -573,6 +604,7 @@ class _Run:
     def __init__(
         self, cfg: BetaProcessHMMSampler, x: Tensor, v: Tensor, lengths: Tensor, generator: torch.Generator,
         prior: FieldPrior | None, min_duration: int, noise: tuple[Tensor | float, float], dwell: Tensor | None = None,
+        blocks: BlockMeans | None = None,
     ) -> None:
         self.cfg = cfg
         self.gen = generator
@@ -608,6 +640,9 @@ class _Run:
         self.pos = self.obs.z[..., : self.d]  # (N, T, d) standardised positions
         self.pos_prior = niw_prior_from_data(self.pos[self.valid], covariance_scale=_POSITION_SCALE)
         self.loc = self.spread = None  # (C, K, d), (C, K, d, d) position Gaussians when tau > 0
+        self.blocks = None  # block emission (module docstring): xbar, sbar, var (N, T, .), zmid (N, T - 1, p)
+        if cfg.block_emission:
+            self.blocks = self._standardised_blocks(blocks)
         # dwell term (module docstring, "Dwell"): c (N, T), its mask, and every chain's (mu, delta), sigma^2
         self.dwell = dwell
         self.dwell_ll = None  # (C, N, T, 2) log N(c_t; mu + delta b, sigma^2), b = 0, 1
@@ -682,6 +717,58 @@ class _Run:
         per_sequence = field_statistics(z.unflatten(-2, (N, -1)), u.unflatten(-2, (N, -1)), w.unflatten(-1, (N, -1)),
                                         onehot.unflatten(-2, (N, -1)))
         return demo_offset_statistics(*per_sequence, ratio)
+
+    def _standardised_blocks(self, blocks: BlockMeans) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The block means, path lengths and noise variances on the positions' standardised scale, padded (N, T, .),
+        and the increments' midpoint regressors (N, T - 1, p)."""
+        if len(blocks.means) != self.N or any(int(m.shape[0]) != int(n) for m, n in zip(blocks.means, self.lengths)):
+            raise ShapeMismatchError("blocks must hold one block per grid point of every sequence")
+        radius, centre = self.obs.radius, self.obs.centre
+        xbar = self.x.new_zeros(self.N, self.T, self.d)
+        sbar = self.x.new_zeros(self.N, self.T)
+        var = self.x.new_ones(self.N, self.T)
+        for i, (m, l, c) in enumerate(zip(blocks.means, blocks.lengths, blocks.counts)):
+            n = m.shape[0]
+            xbar[i, :n] = (m.to(self.x) - centre) / radius
+            xbar[i, n:] = xbar[i, n - 1]
+            sbar[i, :n] = l.to(self.x) / radius
+            sbar[i, n:] = sbar[i, n - 1]
+            var[i, :n] = (blocks.noise / radius) ** 2 / c.to(self.x)
+        zmid = 0.5 * (self.obs.z[:, 1:] + self.obs.z[:, :-1])
+        return xbar, sbar, var, zmid
+
+    def _block_evidence(self, s: Tensor, age: Tensor | None, w: Tensor, onehot: Tensor) -> Tensor:
+        """(B,) the block emission of the labellings s (B, N, T) (:mod:`.blocks`), each state straight or curved:
+        from the direction emission's spike-and-slab choice, the component of one state at a time is switched while
+        that raises the evidence (a profile over the components, as the Student-t scales are profiled), plus log 1/2
+        per state (the prior of either component)."""
+        stats, _ = self._field_terms(age, w, onehot)
+        log_straight = field_mixture_evidence(self.score_prior, *stats, self.cfg.straight_weight,
+                                              self.wide_score_prior, self.cfg.rotation_weight)[1]  # (B, K)
+        used = stats[0] > 0  # (B, K)
+        xbar, sbar, var, zmid = self.blocks
+        B, K = used.shape
+
+        def evidence(lab: Tensor, straight: Tensor) -> Tensor:
+            return block_log_evidence(xbar, sbar, var, zmid, self.valid, lab, straight,
+                                      tolerance=self.cfg.block_tolerance, spread=DEMO_SPREAD,
+                                      slope_scale=self.cfg.slope_scale)
+
+        straight = (log_straight > math.log(0.5)) & used
+        best = evidence(s, straight)
+        flips = torch.eye(K, dtype=torch.bool, device=s.device)
+        for _ in range(_COMPONENT_ROUNDS):
+            trial = (straight.unsqueeze(1) ^ flips.unsqueeze(0)) & used.unsqueeze(1)  # (B, K, K): state j flipped
+            values = evidence(s.unsqueeze(1).expand(B, K, *s.shape[1:]).reshape(B * K, *s.shape[1:]),
+                              trial.reshape(B * K, K)).reshape(B, K)
+            values = torch.where(used, values, torch.full_like(values, -math.inf))
+            top, j = values.max(-1)
+            better = top > best + 1e-9
+            if not bool(better.any()):
+                break
+            straight = torch.where(better.unsqueeze(-1), trial[torch.arange(B), j], straight)
+            best = torch.where(better, top, best)
+        return best + used.sum(-1).to(best) * math.log(0.5)
 
     def _field_evidence(self, age: Tensor | None, w: Tensor, onehot: Tensor) -> Tensor:
         """(B, K) the states' field evidence (spike-and-slab, :func:`field_mixture_evidence`)."""
@@ -1273,14 +1360,17 @@ class _Run:
         lp = jac.sum(-1)
         parts = {}
         nu = self.cfg.robust_dof
-        if nu is not None:
+        if self.blocks is not None:  # the states' motion on the block means instead of the grid directions
+            lp = self._block_evidence(s, age, w, onehot)
+        elif nu is not None:
             lam = self._profile_scales(age, w, onehot)
             half = 0.5 * nu
             log_gamma = half * math.log(half) - math.lgamma(half) + (half - 1.0) * torch.log(lam) - half * lam
             flat_valid = valid.reshape(1, N * T)
             lp = lp + ((log_gamma + 0.5 * d * torch.log(lam)) * flat_valid).sum(-1)
             w = w * lam
-        lp = lp + self._field_evidence(age, w, onehot).sum(-1)
+        if self.blocks is None:
+            lp = lp + self._field_evidence(age, w, onehot).sum(-1)
         if self.tau > 0:  # the tempered NIW evidence of each state's positions (and of its occupancies)
             lp = lp + niw_log_marginal_likelihood(self.pos_prior, *self._position_statistics(onehot)).sum(-1)
             lp = lp + self._occupancy_terms(onehot).sum(-1) + self._occupancy_constant()

@@ -182,6 +182,7 @@ from lfd_torch.errors import (
     TooFewSamplesError,
 )
 from lfd_torch.gmm import GaussianBank, gaussian_log_density
+from lfd_torch.segmentation.blocks import BlockMeans, block_means
 from lfd_torch.segmentation.dwell import dwell_covariate
 from lfd_torch.segmentation.field import field_log_likelihood_additive, field_observations
 from lfd_torch.segmentation.sampler import BetaProcessHMMSampler, SamplerResult
@@ -1008,6 +1009,8 @@ def segment(
     dwell_cue: bool = True,
     dwell_pace: bool = False,
     demo_offset: float = 0.0,
+    block_emission: bool = False,
+    block_tolerance: float = 0.1,
     noise_model: str = "ar1",
     feature_mass: float = 2.0,
     feature_concentration: float = 1.0,
@@ -1066,6 +1069,12 @@ def segment(
             pace level (:mod:`.dwell`, "Pace of a run"): a change of pace where the directions change is evidence of
             a switch. Measured, not the default: it finds more constant-speed corners, but cuts a one-step LASA
             route in two on only some seeds (experiments/segmentation_studies.md, "A pace level per run").
+        block_emission: in the collapsed score (so ``selection="map"``) the states' motion is scored on the block
+            means of the positions around the grid points (:mod:`.blocks`): a straight state is a line through
+            them, with the lever arm of its length, a curved one an affine field with the direction tolerance.
+            Measured, not the default (experiments/segmentation_studies.md, "Block emission").
+        block_tolerance: with ``block_emission``, the curved states' direction tolerance sigma_u (rad), a random
+            walk of the position along a run (:mod:`.blocks`).
         demo_offset: v >= 0: in the collapsed score (so ``selection="map"``) every demonstration adds its own offset
             ~ N(0, v Psi) to the field of each state it visits (:mod:`.sampler`, "Demonstrations' own offsets"); 0:
             one field per state. Measured, not the default: with a tight tolerance it keeps a curved leg shared by
@@ -1112,7 +1121,8 @@ def segment(
         direction_noise=direction_noise, extra_dof=extra_dof, slope_scale=slope_scale,
         slope_scale_mix=slope_scale_mix, rotation_weight=rotation_weight, robust_dof=robust_dof,
         position_weight=position_weight, position_mixture=position_mixture, tolerance_correlation=tolerance_correlation,
-        dwell_pace=dwell_pace, demo_offset=demo_offset,
+        dwell_pace=dwell_pace, demo_offset=demo_offset, block_emission=block_emission,
+        block_tolerance=block_tolerance,
         straight_weight=straight_weight, n_chains=n_chains, n_iterations=n_iterations, burn_in=burn_in, n_initial_features=n_initial_features,
         birth_window=birth_window, birth_prior_mix=birth_prior_mix,
         resample_hyperparameters=resample_hyperparameters, selection=selection, progress=progress,
@@ -1161,9 +1171,13 @@ def segment(
     if tolerance_correlation != 0.0 and duration < 2:
         raise InvalidArgumentError(f"tolerance_correlation other than 0 needs a minimum duration of at least 2 grid "
                                    f"points, got {duration} (raise min_length or max_samples)")
+    blocks = None
+    if block_emission:
+        parts = [block_means(s, g, length) for s, g, (length, _, _) in zip(seqs_full, grid, grid_levels)]
+        blocks = BlockMeans([m for m, _, _ in parts], [l for _, l, _ in parts], [c for _, _, c in parts], sigma_x)
     try:
         result = sampler.run(xs, vs, generator, min_duration=duration, velocity_noise=sigma_v_t, speed_floor=s_floor,
-                             dwell=dwell)
+                             dwell=dwell, blocks=blocks)
     except torch.linalg.LinAlgError as exc:  # a degenerate field posterior (e.g. data without any spread)
         raise SolverError(f"the BP-GM-HMM sampler failed on these demonstrations: {exc}") from exc
     t1 = time.perf_counter()

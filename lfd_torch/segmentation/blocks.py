@@ -1,0 +1,157 @@
+"""Block emission: the states' motion scored on block means of the positions (an option of the collapsed score).
+
+Notation:
+    B  labellings scored at once, N sequences, T padded grid length, M = T - 1 increments, K states, d dimension,
+    p = d + 1
+    xbar  (N, T, d)  standardised mean of the samples nearest each grid point (block j: the samples closer to grid
+                     point j than to its neighbours, m_j of them)
+    sbar  (N, T)     their mean path length (standardised units), ds_j = sbar_(j+1) - sbar_j
+    var   (N, T)     the noise variance of a block mean per axis, sigma^2 / m_j
+
+Why. The direction emission (:mod:`.field`) sees local least-squares slopes, one per grid point, as independent
+observations. A straight leg's direction is then known to about sigma_dir / sqrt(n) from its n grid points, while
+a line through the leg's samples knows it about n / 3 times better: the lever arm of the leg's length. On the
+constant-speed benchmark families a known-count oracle that fits lines to the positions finds every switch where
+the sampler misses mild corners between short legs and the scoop's hook (``experiments/oracle_switches.py``,
+``experiments/segmentation_studies.md``, "A known-count oracle"). This module scores the same states on the block
+means, where that lever arm is kept.
+
+Model (per axis, the axes independent and alike). The increment Delta_j = xbar_(j+1) - xbar_j of two grid points
+of one run of state k is the state's motion over ds_j plus the difference of the two blocks' noises:
+
+    straight state   Delta_j = ds_j (b_k + b_ik) + e_(j+1) - e_j,   b_k ~ N(0, 1 / d), b_ik ~ N(0, omega^2)
+    curved state     Delta_j = ds_j (B_k zbar_j + o_ik) + ds_j eta_j + e_(j+1) - e_j,   eta_j ~ N(0, sigma_u^2)
+
+with e_j ~ N(0, var_j) the blocks' noise, b_ik and o_ik each demonstration's own small turn of the direction or
+offset of the field, N(0, omega^2) per axis (its corners are its own; omega = ``spread``), B_k the affine field on
+the midpoint regressors zbar_j = (z_j + z_(j+1)) / 2 under the field prior's scales (slope entries N(0, s^2), offset
+N(0, 1)) and eta_j the direction tolerance sigma_u of the curved states (a random walk of the position along the
+run). A straight state has no tolerance: it is a line. An increment across a switch belongs to neither state: the
+corner lies somewhere between the two grid points, so that increment is a free displacement, N(0, ds_j^2) per axis.
+Which of the two a state is, is an argument here; the sampler starts from the direction emission's spike-and-slab
+choice and switches one state at a time while the evidence rises (:meth:`~.sampler._Run._block_evidence`), a
+profile over the components rather than the sum over the 2^K combinations. With the coefficients Gaussian, the
+increments of all sequences are one Gaussian, y ~ N(0, Omega + X Lambda X^T), Omega block-diagonal per sequence and
+tridiagonal (the shared block noise of consecutive increments), so the evidence is
+
+    log p = -1/2 sum_a (y_a^T Omega^-1 y_a - c_a^T A^-1 c_a) - d / 2 (log|Omega| + log|Lambda| + log|A| + M log 2 pi),
+    A = Lambda^-1 + X^T Omega^-1 X,   c_a = X^T Omega^-1 y_a.
+
+The first block of every sequence (its start) is the same for every labelling and left out. Padded increments
+(beyond a sequence's end) are unit-variance zeros, a constant.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from lfd_torch.errors import ShapeMismatchError
+
+__all__ = ["BlockMeans", "block_means", "block_log_evidence", "DEMO_SPREAD"]
+
+#: omega, the prior scale (rad) of each demonstration's own turn of a straight state's direction: demonstrations put
+#: their corners a few percent of a leg apart, which turns a leg by a few degrees (the benchmark's jitter, 2 % of the
+#: shorter leg, turns it by up to about 3 degrees); without it one line for all demonstrations pays for every such
+#: turn at the block noise's scale.
+DEMO_SPREAD = 0.05
+
+
+@dataclass(frozen=True, eq=False)
+class BlockMeans:
+    """Block means of N sequences on their grids, in the units of the positions.
+
+    Attributes:
+        means: N tensors (n_i, d), the mean of the samples nearest each grid point.
+        lengths: N tensors (n_i,), their mean path length.
+        counts: N tensors (n_i,), the number of samples in each block.
+        noise: the position noise's standard deviation per axis (unit of the positions).
+    """
+
+    means: list[Tensor]
+    lengths: list[Tensor]
+    counts: list[Tensor]
+    noise: float
+
+
+def block_means(positions: Tensor, grid: Tensor, path_length: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Means (n, d), mean path lengths (n,) and sample counts (n,) of the blocks around the grid samples.
+
+    Args:
+        positions: (T, d) one sequence at full rate; grid: (n,) increasing sample indices; path_length: (T,)
+            the path length at every sample.
+    """
+    T = positions.shape[0]
+    if grid.ndim != 1 or path_length.shape != (T,):
+        raise ShapeMismatchError(f"grid {tuple(grid.shape)} and path_length {tuple(path_length.shape)} do not fit "
+                                 f"positions {tuple(positions.shape)}")
+    edges = torch.cat([grid.new_zeros(1), torch.div(grid[1:] + grid[:-1] + 1, 2, rounding_mode="floor"),
+                       grid.new_full((1,), T)])
+    block = torch.bucketize(torch.arange(T, device=grid.device), edges[1:-1], right=True)  # (T,) block of a sample
+    n = grid.shape[0]
+    counts = torch.bincount(block, minlength=n).to(positions.dtype)
+    means = positions.new_zeros(n, positions.shape[1]).index_add_(0, block, positions) / counts.unsqueeze(-1)
+    lengths = path_length.new_zeros(n).index_add_(0, block, path_length) / counts
+    return means, lengths, counts
+
+
+def block_log_evidence(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, valid: Tensor, labels: Tensor,
+                       straight: Tensor, *, tolerance: float, spread: float, slope_scale: float) -> Tensor:
+    """(B,) log p(increments of the block means | labelling) (module docstring).
+
+    Args:
+        xbar: (N, T, d), sbar: (N, T), var: (N, T) block means, path lengths and noise variances (standardised).
+        zmid: (N, M, p) midpoint regressors of the increments; valid: (N, T) bool.
+        labels: (B, N, T) long states in [0, K); straight: (B, K) bool, the states scored as straight.
+        tolerance: sigma_u of the curved states; spread: omega; slope_scale: s.
+    """
+    B, N, T = labels.shape
+    K = straight.shape[-1]
+    d = xbar.shape[-1]
+    p = d + 1
+    M = T - 1
+    dt = xbar.dtype
+    inc = valid[:, 1:] & valid[:, :-1]  # (N, M)
+    ds = (sbar[:, 1:] - sbar[:, :-1]).clamp_min(0.0) * inc
+    y = (xbar[:, 1:] - xbar[:, :-1]) * inc.unsqueeze(-1)  # (N, M, d)
+    same = (labels[..., 1:] == labels[..., :-1]) & inc  # (B, N, M)
+    switch = inc & ~same
+    own = labels[..., 1:]
+    is_straight = torch.gather(straight, 1, own.reshape(B, -1)).reshape(B, N, M) & same
+    is_curved = same & ~is_straight
+    # Omega: tridiagonal per sequence, the padded increments unit-variance
+    diag = torch.where(inc, var[:, 1:] + var[:, :-1], torch.ones_like(ds)).expand(B, N, M)
+    diag = diag + is_curved * (ds * tolerance) ** 2 + switch * ds**2
+    off = -(var[:, 1:-1] * (inc[:, 1:] & inc[:, :-1])).expand(B, N, M - 1)
+    omega = torch.diag_embed(diag) + torch.diag_embed(off, 1) + torch.diag_embed(off, -1)
+    chol = torch.linalg.cholesky(omega)  # (B, N, M, M)
+    # X: per state, [shared direction, one per sequence] (straight), then p field coefficients and one offset per
+    # sequence (curved)
+    width = 1 + N + p + N
+    onehot = torch.nn.functional.one_hot(own, K).to(dt)  # (B, N, M, K)
+    s_cols = onehot * (is_straight * ds).unsqueeze(-1)  # (B, N, M, K)
+    X = xbar.new_zeros(B, N, M, K, width)
+    X[..., 0] = s_cols
+    X[..., 1: 1 + N] = s_cols.unsqueeze(-1) * torch.eye(N, dtype=dt, device=xbar.device).view(1, N, 1, 1, N)
+    c_cols = onehot * (is_curved * ds).unsqueeze(-1)
+    X[..., 1 + N: 1 + N + p] = c_cols.unsqueeze(-1) * zmid.view(1, N, M, 1, p)
+    X[..., 1 + N + p:] = c_cols.unsqueeze(-1) * torch.eye(N, dtype=dt, device=xbar.device).view(1, N, 1, 1, N)
+    X = X.reshape(B, N, M, K * width)
+    prior = torch.tensor([1.0 / d] + [spread**2] * N + [slope_scale**2] * d + [1.0] + [spread**2] * N, dtype=dt,
+                         device=xbar.device)
+    prior = prior.repeat(K)  # (Q,)
+    oy = torch.cholesky_solve(y.expand(B, N, M, d), chol)  # Omega^-1 y
+    ox = torch.cholesky_solve(X, chol)  # Omega^-1 X
+    yoy = (y.expand(B, N, M, d) * oy).sum((1, 2))  # (B, d)
+    c = (X.transpose(-1, -2) @ oy).sum(1)  # (B, Q, d)
+    A = (X.transpose(-1, -2) @ ox).sum(1) + torch.diag_embed(1.0 / prior).expand(B, -1, -1)
+    chol_a = torch.linalg.cholesky(A)
+    quad = (c * torch.cholesky_solve(c, chol_a)).sum(-2)  # (B, d)
+    logdet_omega = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum((-1, -2))
+    logdet_a = 2.0 * torch.log(torch.diagonal(chol_a, dim1=-2, dim2=-1)).sum(-1)
+    logdet_prior = torch.log(prior).sum()
+    return (-0.5 * (yoy - quad).sum(-1)
+            - 0.5 * d * (logdet_omega + logdet_prior + logdet_a + N * M * math.log(2.0 * math.pi)))
