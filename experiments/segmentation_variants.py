@@ -67,7 +67,7 @@ VARIANTS: tuple[Variant, ...] = (
     Variant("rotation fields", {"rotation_weight": 0.5}, "bench_segmentation_segment_rotation05.json",
             "bench_segmentation_held_out_rotation05.json", "bench_segmentation_seeds_rotation05.json"),
     Variant("block emission", {"block_emission": True, "position_weight": 0.0}, "bench_segmentation_segment_block.json",
-            "bench_segmentation_held_out_block.json", None),
+            "bench_segmentation_held_out_block.json", "bench_segmentation_seeds_block.json"),
     Variant("tight tolerance", {"direction_noise": 0.05}, "bench_segmentation_segment_tolerance005.json", None,
             "bench_segmentation_seeds_tolerance005.json"),
     Variant("learned correlated tolerance", {"tolerance_correlation": None},
