@@ -766,7 +766,7 @@ class _Run:
             better = top > best + 1e-9
             if not bool(better.any()):
                 break
-            straight = torch.where(better.unsqueeze(-1), trial[torch.arange(B), j], straight)
+            straight = torch.where(better.unsqueeze(-1), trial[torch.arange(B, device=s.device), j], straight)
             best = torch.where(better, top, best)
         return best + used.sum(-1).to(best) * math.log(0.5)
 
