@@ -46,24 +46,13 @@ import math
 import torch
 from torch import Tensor
 
+from lfd_torch.segmentation.blocks import block_means
 from lfd_torch.segmentation.segmentation import path_length, scale_velocities, velocity_noise
 from diagnose_segmentation import case_labellings, score_gap
 from bench_segmentation import case_data
 
 
 MAX_EXACT_STATES = 8  # above this many states the sum over combinations is replaced by its best term
-
-
-def blocks(x: Tensor, grid: list[int], velocity_length: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Block means (n, d), their mean path length (n,) and sample counts (n,) around the grid samples."""
-    T = x.shape[0]
-    g = torch.tensor(grid)
-    edges = torch.div(g[1:] + g[:-1] + 1, 2, rounding_mode="floor")  # first sample of every block after the first
-    block = torch.bucketize(torch.arange(T), edges, right=True)  # (T,) the block of every sample
-    counts = torch.bincount(block, minlength=g.numel()).to(x.dtype)
-    means = x.new_zeros(g.numel(), x.shape[1]).index_add_(0, block, x) / counts.unsqueeze(-1)
-    lens = velocity_length.new_zeros(g.numel()).index_add_(0, block, velocity_length) / counts
-    return means, lens, counts
 
 
 def case_blocks(seg, run, syn, length: str = "speed") -> list[dict]:
@@ -83,7 +72,7 @@ def case_blocks(seg, run, syn, length: str = "speed") -> list[dict]:
         v = scale_velocities(x, k, dt)
         noise = velocity_noise(sigma, T, k, dt, rho=rho).to(x)
         L = path_length(v, noise, dt)
-        xb, sb, mb = blocks(x, seg.info["grid"][i], L)
+        xb, sb, mb = block_means(x, torch.tensor(seg.info["grid"][i]), L)
         n = xb.shape[0]
         xs, noise = (xb - centre) / radius, sigma / radius
         if length == "chord":  # the path length along the block means, less the noise's share of each chord
