@@ -27,57 +27,71 @@ def test_block_means_are_the_means_of_the_samples_nearest_each_grid_point():
         block_means(x, grid, length[:-1])
 
 
-def test_block_evidence_is_the_gaussian_of_its_written_out_model():
-    """Two sequences, a straight state then a curved one: the evidence is log N(y; 0, Omega + X Lambda X^T) of the
-    increments, with every column and covariance entry written out here by loops (scipy as the reference)."""
-    g = torch.Generator().manual_seed(1)
-    N, T, d = 2, 7, 2
+def _written_out_evidence(xbar, sbar, var, zmid, valid, labels, straight, tol, spread, slope):
+    """log N(y; 0, Omega + X Lambda X^T) of one labelling (N, T), every column and covariance entry by loops."""
+    N, T, d = xbar.shape
     p = d + 1
-    xbar = torch.randn(N, T, d, generator=g, dtype=torch.float64).cumsum(1) * 0.1
-    sbar = torch.rand(N, T, generator=g, dtype=torch.float64).cumsum(1) * 0.1
-    var = 0.01 + 0.01 * torch.rand(N, T, generator=g, dtype=torch.float64)
-    z = torch.cat([torch.randn(N, T, d, generator=g, dtype=torch.float64), torch.ones(N, T, 1, dtype=torch.float64)], -1)
-    zmid = 0.5 * (z[:, 1:] + z[:, :-1])
-    valid = torch.ones(N, T, dtype=torch.bool)
-    valid[1, 6] = False  # the second sequence is one point shorter
-    labels = torch.tensor([[[0, 0, 0, 1, 1, 1, 1], [0, 0, 1, 1, 1, 1, 1]]])
-    straight = torch.tensor([[True, False]])
-    tol, spread, slope = 0.2, 0.05, 1.0
-    mine = float(block_log_evidence(xbar, sbar, var, zmid, valid, labels, straight, tolerance=tol, spread=spread,
-                                    slope_scale=slope)[0])
-
     M = T - 1
+    K = straight.shape[0]
     rows = [(i, j) for i in range(N) for j in range(M)]
-    names = ["b"] + [f"b{i}" for i in range(N)] + [f"B{a}" for a in range(p)] + [f"c{i}" for i in range(N)]
-    prior = {"b": 1.0 / d, **{f"b{i}": spread**2 for i in range(N)}, **{f"B{a}": slope**2 for a in range(d)},
-             f"B{d}": 1.0, **{f"c{i}": spread**2 for i in range(N)}}
+    names, prior = [], {}
+    for k in range(K):  # each state: shared direction and each sequence's turn; field and each sequence's offset
+        for n, v in ([(f"b{k}", 1.0 / d)] + [(f"b{k}_{i}", spread**2) for i in range(N)]
+                     + [(f"B{k}_{a}", slope**2) for a in range(d)] + [(f"B{k}_{d}", 1.0)]
+                     + [(f"c{k}_{i}", spread**2) for i in range(N)]):
+            names.append(n)
+            prior[n] = v
     X = np.zeros((len(rows), len(names)))
     omega = np.zeros((len(rows), len(rows)))
     for r, (i, j) in enumerate(rows):
-        ok = bool(valid[i, j] and valid[i, j + 1])
-        if not ok:
+        if not bool(valid[i, j] and valid[i, j + 1]):
             omega[r, r] = 1.0
             continue
         ds = float(sbar[i, j + 1] - sbar[i, j])
         omega[r, r] = float(var[i, j] + var[i, j + 1])
         if j + 1 < M and bool(valid[i, j + 2]):
             omega[r, r + 1] = omega[r + 1, r] = -float(var[i, j + 1])
-        a, b = int(labels[0, i, j]), int(labels[0, i, j + 1])
+        a, b = int(labels[i, j]), int(labels[i, j + 1])
         if a != b:
             omega[r, r] += ds**2  # the corner: a free displacement
-        elif a == 0:  # straight
-            X[r, names.index("b")] = ds
-            X[r, names.index(f"b{i}")] = ds
+        elif bool(straight[a]):
+            X[r, names.index(f"b{a}")] = ds
+            X[r, names.index(f"b{a}_{i}")] = ds
         else:  # curved: the field on the midpoint regressors, the demonstration's offset, the tolerance
-            for k in range(p):
-                X[r, names.index(f"B{k}")] = ds * float(zmid[i, j, k])
-            X[r, names.index(f"c{i}")] = ds
+            for c in range(p):
+                X[r, names.index(f"B{a}_{c}")] = ds * float(zmid[i, j, c])
+            X[r, names.index(f"c{a}_{i}")] = ds
             omega[r, r] += (ds * tol) ** 2
     cov = omega + X @ np.diag([prior[n] for n in names]) @ X.T
     y = np.stack([(xbar[i, j + 1] - xbar[i, j]).numpy() if bool(valid[i, j] and valid[i, j + 1]) else np.zeros(d)
                   for i, j in rows])
-    ref = sum(multivariate_normal(np.zeros(len(rows)), cov).logpdf(y[:, a]) for a in range(d))
-    assert mine == pytest.approx(ref, abs=1e-8)
+    return sum(multivariate_normal(np.zeros(len(rows)), cov).logpdf(y[:, a]) for a in range(d))
+
+
+def test_block_evidence_is_the_gaussian_of_its_written_out_model():
+    """Two sequences of different lengths, three labellings scored in one batch (two states, straight then curved;
+    three states with the first two straight; the states swapped): each evidence is log N(y; 0, Omega + X Lambda
+    X^T) of the increments, with every column and covariance entry written out by loops (scipy as the
+    reference)."""
+    g = torch.Generator().manual_seed(1)
+    N, T, d = 2, 9, 2
+    xbar = torch.randn(N, T, d, generator=g, dtype=torch.float64).cumsum(1) * 0.1
+    sbar = torch.rand(N, T, generator=g, dtype=torch.float64).cumsum(1) * 0.1
+    var = 0.01 + 0.01 * torch.rand(N, T, generator=g, dtype=torch.float64)
+    z = torch.cat([torch.randn(N, T, d, generator=g, dtype=torch.float64), torch.ones(N, T, 1, dtype=torch.float64)], -1)
+    zmid = 0.5 * (z[:, 1:] + z[:, :-1])
+    valid = torch.ones(N, T, dtype=torch.bool)
+    valid[1, 8] = False  # the second sequence is one point shorter
+    labels = torch.tensor([[[0, 0, 0, 1, 1, 1, 1, 1, 1], [0, 0, 1, 1, 1, 1, 1, 1, 1]],
+                           [[0, 0, 0, 1, 1, 1, 2, 2, 2], [0, 0, 1, 1, 1, 2, 2, 2, 2]],
+                           [[2, 2, 2, 0, 0, 0, 1, 1, 1], [2, 2, 0, 0, 0, 1, 1, 1, 1]]])
+    straight = torch.tensor([[True, False, False], [True, True, False], [False, True, True]])
+    tol, spread, slope = 0.2, 0.05, 1.0
+    mine = block_log_evidence(xbar, sbar, var, zmid, valid, labels, straight, tolerance=tol, spread=spread,
+                              slope_scale=slope)
+    for b in range(labels.shape[0]):
+        ref = _written_out_evidence(xbar, sbar, var, zmid, valid, labels[b], straight[b], tol, spread, slope)
+        assert float(mine[b]) == pytest.approx(ref, abs=1e-8)
 
 
 def test_block_emission_options_are_checked():

@@ -128,30 +128,35 @@ def block_log_evidence(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, va
     off = -(var[:, 1:-1] * (inc[:, 1:] & inc[:, :-1])).expand(B, N, M - 1)
     omega = torch.diag_embed(diag) + torch.diag_embed(off, 1) + torch.diag_embed(off, -1)
     chol = torch.linalg.cholesky(omega)  # (B, N, M, M)
-    # X: per state, [shared direction, one per sequence] (straight), then p field coefficients and one offset per
-    # sequence (curved)
-    width = 1 + N + p + N
+    # X per sequence, only its nonzero columns: per state the shared [direction, p field coefficients], then the
+    # sequence's own [turn, offset]; the own columns of different sequences never meet, so they are eliminated per
+    # sequence (a Schur complement) before the shared block is factored.
     onehot = torch.nn.functional.one_hot(own, K).to(dt)  # (B, N, M, K)
     s_cols = onehot * (is_straight * ds).unsqueeze(-1)  # (B, N, M, K)
-    X = xbar.new_zeros(B, N, M, K, width)
-    X[..., 0] = s_cols
-    X[..., 1: 1 + N] = s_cols.unsqueeze(-1) * torch.eye(N, dtype=dt, device=xbar.device).view(1, N, 1, 1, N)
     c_cols = onehot * (is_curved * ds).unsqueeze(-1)
-    X[..., 1 + N: 1 + N + p] = c_cols.unsqueeze(-1) * zmid.view(1, N, M, 1, p)
-    X[..., 1 + N + p:] = c_cols.unsqueeze(-1) * torch.eye(N, dtype=dt, device=xbar.device).view(1, N, 1, 1, N)
-    X = X.reshape(B, N, M, K * width)
-    prior = torch.tensor([1.0 / d] + [spread**2] * N + [slope_scale**2] * d + [1.0] + [spread**2] * N, dtype=dt,
-                         device=xbar.device)
-    prior = prior.repeat(K)  # (Q,)
-    oy = torch.cholesky_solve(y.expand(B, N, M, d), chol)  # Omega^-1 y
-    ox = torch.cholesky_solve(X, chol)  # Omega^-1 X
-    yoy = (y.expand(B, N, M, d) * oy).sum((1, 2))  # (B, d)
-    c = (X.transpose(-1, -2) @ oy).sum(1)  # (B, Q, d)
-    A = (X.transpose(-1, -2) @ ox).sum(1) + torch.diag_embed(1.0 / prior).expand(B, -1, -1)
-    chol_a = torch.linalg.cholesky(A)
-    quad = (c * torch.cholesky_solve(c, chol_a)).sum(-2)  # (B, d)
+    shared = torch.cat([s_cols.unsqueeze(-1), c_cols.unsqueeze(-1) * zmid.view(1, N, M, 1, p)], -1)  # (.., K, 1 + p)
+    local = torch.stack([s_cols, c_cols], -1)  # (B, N, M, K, 2)
+    Qs, Ql = K * (1 + p), 2 * K
+    X = torch.cat([shared.reshape(B, N, M, Qs), local.reshape(B, N, M, Ql)], -1)
+    prior_s = torch.tensor([1.0 / d] + [slope_scale**2] * d + [1.0], dtype=dt, device=xbar.device).repeat(K)
+    prior_l = xbar.new_full((Ql,), spread**2)
+    # whitened by Omega's Cholesky factor L: X^T Omega^-1 X = W^T W with W = L^-1 X, likewise for y
+    white = torch.linalg.solve_triangular(chol, torch.cat([X, y.expand(B, N, M, d)], -1), upper=False)
+    W, v = white[..., :Qs + Ql], white[..., Qs + Ql:]
+    yoy = (v * v).sum((1, 2))  # (B, d)
+    G = W.transpose(-1, -2) @ W  # (B, N, Qs + Ql, Qs + Ql)
+    c = W.transpose(-1, -2) @ v  # (B, N, Qs + Ql, d)
+    D = G[..., Qs:, Qs:] + torch.diag(1.0 / prior_l)
+    chol_d = torch.linalg.cholesky(D)  # (B, N, Ql, Ql)
+    C = G[..., :Qs, Qs:]  # (B, N, Qs, Ql)
+    dc = torch.cholesky_solve(torch.cat([C.transpose(-1, -2), c[..., Qs:, :]], -1), chol_d)  # D^-1 [C^T, c_l]
+    S = (G[..., :Qs, :Qs] - C @ dc[..., :Qs]).sum(1) + torch.diag(1.0 / prior_s)  # (B, Qs, Qs)
+    cs = (c[..., :Qs, :] - C @ dc[..., Qs:]).sum(1)  # (B, Qs, d)
+    chol_s = torch.linalg.cholesky(S)
+    quad = (cs * torch.cholesky_solve(cs, chol_s)).sum(-2) + (c[..., Qs:, :] * dc[..., Qs:]).sum((1, 2))  # (B, d)
     logdet_omega = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum((-1, -2))
-    logdet_a = 2.0 * torch.log(torch.diagonal(chol_a, dim1=-2, dim2=-1)).sum(-1)
-    logdet_prior = torch.log(prior).sum()
+    logdet_a = 2.0 * (torch.log(torch.diagonal(chol_s, dim1=-2, dim2=-1)).sum(-1)
+                      + torch.log(torch.diagonal(chol_d, dim1=-2, dim2=-1)).sum((-1, -2)))
+    logdet_prior = torch.log(prior_s).sum() + N * torch.log(prior_l).sum()
     return (-0.5 * (yoy - quad).sum(-1)
             - 0.5 * d * (logdet_omega + logdet_prior + logdet_a + N * M * math.log(2.0 * math.pi)))
