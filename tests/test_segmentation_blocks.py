@@ -127,3 +127,64 @@ def test_block_emission_finds_the_mild_corner_the_direction_emission_merges():
         cuts = [int(a) for _, a, _ in seg.pieces[0].tolist()][1:]
         assert len(cuts) == expected, (block, cuts)
     assert all(abs(c - t) <= 0.03 * T for c, t in zip(cuts, truth)), (cuts, truth)
+
+
+def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkeypatch):
+    """With the block emission the map search ranks its shift and reassignment candidates by the block evidence:
+    the change of one sequence's share added to the others' (``_Run._block_deltas``) equals the difference of
+    ``block_log_evidence`` of the whole candidate and of the current labelling, every state keeping the current
+    labelling's profiled component (a new state that of the state whose runs it receives), plus log 1/2 per state
+    gained; and the shift scores are the current score plus that change plus the change of the other terms of the
+    collapsed score, each candidate scored in full."""
+    import lfd_torch.segmentation.sampler as sampler_module
+    from lfd_torch.segmentation.synthetic import multi_step_demos
+
+    runs = []
+    original = sampler_module._Run.sample
+
+    def capture(self):
+        runs.append(self)
+        return original(self)
+
+    monkeypatch.setattr(sampler_module._Run, "sample", capture)
+    syn = multi_step_demos(torch.Generator().manual_seed(0), n_demos=3, n_steps=3, dim=2, profile="constant")
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), block_emission=True, position_weight=0.0,
+                  n_iterations=10)
+    run, res = runs[-1], seg.sampler
+    s, F = res.states, res.features
+    K = F.shape[-1]
+    hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
+             for k in ("transition_concentration", "stickiness", "feature_mass")]
+
+    def parts(lab, feat):
+        phases = sampler_module.duration_phases(lab, run.D)
+        return run._collapsed_score_parts(lab, feat, phases, *(h.expand(lab.shape[0]) for h in hyper))
+
+    N, T = s.shape
+    onehot = torch.nn.functional.one_hot(s, K).to(run.dtype) * run.valid.unsqueeze(-1)
+    age, w, _ = run._score_view(s[None])
+    straight = run._block_profile(s[None], age, w.expand(1, -1), onehot.reshape(1, N * T, K))[1][0]
+
+    def evidence(lab, st):
+        return block_log_evidence(*run.blocks, run.valid, lab, st, **run._block_options())
+
+    def n_used(lab, k):
+        return (torch.nn.functional.one_hot(lab, k).bool() & run.valid.unsqueeze(-1)).flatten(-3, -2).any(-2).sum(-1)
+
+    cand_s, cand_f, seq, touched = run._shifts(s, F)
+    fast = run._block_deltas(s, cand_s, seq, K)
+    ref = (evidence(cand_s, straight.expand(cand_s.shape[0], K)) - evidence(s[None], straight[None])
+           + (n_used(cand_s, K) - n_used(s[None], K)) * np.log(0.5))
+    assert torch.allclose(fast, ref, rtol=0, atol=1e-7), float((fast - ref).abs().max())
+    score = sum(parts(s[None], F[None]).values())[0]
+    shift_scores = run._shift_scores(s, F, cand_s, cand_f, seq, touched, score, hyper)
+    cand, cur = parts(cand_s, cand_f), parts(s[None], F[None])
+    others = sum(cand[k] - cur[k] for k in cand if k != "emission")
+    assert torch.allclose(shift_scores, score + fast + others, rtol=0, atol=1e-7)
+
+    cs, cf, i, k, j = run._reassignments(s, F)
+    fast = run._block_deltas(s, cs, i, K + 1, moved=k)
+    st = torch.cat([straight, torch.zeros(1, dtype=torch.bool)]).expand(cs.shape[0], K + 1).clone()
+    st[:, K] = straight[k]
+    ref = (evidence(cs, st) - evidence(s[None], st[:1]) + (n_used(cs, K + 1) - n_used(s[None], K + 1)) * np.log(0.5))
+    assert (j == K).any() and torch.allclose(fast, ref, rtol=0, atol=1e-7), float((fast - ref).abs().max())

@@ -51,7 +51,8 @@ from torch import Tensor
 
 from lfd_torch.errors import ShapeMismatchError
 
-__all__ = ["BlockMeans", "block_means", "block_log_evidence", "DEMO_SPREAD"]
+__all__ = ["BlockMeans", "BlockTerms", "block_means", "block_sequence_terms", "combine_block_terms",
+           "block_log_evidence", "DEMO_SPREAD"]
 
 #: omega, the prior scale (rad) of each demonstration's own turn of a straight state's direction: demonstrations put
 #: their corners a few percent of a leg apart, which turns a leg by a few degrees (the benchmark's jitter, 2 % of the
@@ -98,6 +99,88 @@ def block_means(positions: Tensor, grid: Tensor, path_length: Tensor) -> tuple[T
     return means, lengths, counts
 
 
+@dataclass(frozen=True, eq=False)
+class BlockTerms:
+    """Each sequence's share of the block evidence (leading dims (B, N); summed over N they give the evidence).
+
+    Attributes:
+        gram: (B, N, Qs, Qs) X_s^T Omega^-1 X_s less what the sequence's own columns explain (its Schur complement).
+        proj: (B, N, Qs, d) the same for X_s^T Omega^-1 y.
+        const: (B, N) the sequence's own terms: -1/2 (y^T Omega^-1 y - c_l^T D^-1 c_l) summed over the axes,
+            -d/2 (log|Omega| + log|D| + log|Lambda_l| + M log 2 pi).
+    Qs = K (1 + p) shared columns, per state [direction, p field coefficients].
+    """
+
+    gram: Tensor
+    proj: Tensor
+    const: Tensor
+
+
+def block_sequence_terms(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, valid: Tensor, labels: Tensor,
+                         straight: Tensor, *, tolerance: float, spread: float, slope_scale: float) -> BlockTerms:
+    """Each sequence's share of :func:`block_log_evidence` (same arguments; the data may also carry a leading
+    batch dimension (B, N, ...), e.g. one sequence of a different demonstration per labelling)."""
+    B, N, T = labels.shape
+    K = straight.shape[-1]
+    d = xbar.shape[-1]
+    p = d + 1
+    M = T - 1
+    dt = xbar.dtype
+    if xbar.ndim == 3:
+        xbar, sbar, var, zmid, valid = (t.unsqueeze(0) for t in (xbar, sbar, var, zmid, valid))
+    inc = valid[..., 1:] & valid[..., :-1]  # (1 or B, N, M)
+    ds = (sbar[..., 1:] - sbar[..., :-1]).clamp_min(0.0) * inc
+    y = (xbar[..., 1:, :] - xbar[..., :-1, :]) * inc.unsqueeze(-1)  # (1 or B, N, M, d)
+    same = (labels[..., 1:] == labels[..., :-1]) & inc  # (B, N, M)
+    switch = inc & ~same
+    own = labels[..., 1:]
+    is_straight = torch.gather(straight, 1, own.reshape(B, -1)).reshape(B, N, M) & same
+    is_curved = same & ~is_straight
+    # Omega: tridiagonal per sequence, the padded increments unit-variance
+    diag = torch.where(inc, var[..., 1:] + var[..., :-1], torch.ones_like(ds)).expand(B, N, M)
+    diag = diag + is_curved * (ds * tolerance) ** 2 + switch * ds**2
+    off = -(var[..., 1:-1] * (inc[..., 1:] & inc[..., :-1])).expand(B, N, M - 1)
+    omega = torch.diag_embed(diag) + torch.diag_embed(off, 1) + torch.diag_embed(off, -1)
+    chol = torch.linalg.cholesky(omega)  # (B, N, M, M)
+    # X per sequence, only its nonzero columns: per state the shared [direction, p field coefficients], then the
+    # sequence's own [turn, offset]; the own columns of different sequences never meet, so they are eliminated per
+    # sequence (a Schur complement) before the shared block is factored.
+    onehot = torch.nn.functional.one_hot(own, K).to(dt)  # (B, N, M, K)
+    s_cols = onehot * (is_straight * ds).unsqueeze(-1)  # (B, N, M, K)
+    c_cols = onehot * (is_curved * ds).unsqueeze(-1)
+    shared = torch.cat([s_cols.unsqueeze(-1), c_cols.unsqueeze(-1) * zmid.unsqueeze(-2)], -1)  # (.., K, 1 + p)
+    local = torch.stack([s_cols, c_cols], -1)  # (B, N, M, K, 2)
+    Qs, Ql = K * (1 + p), 2 * K
+    X = torch.cat([shared.reshape(B, N, M, Qs), local.reshape(B, N, M, Ql)], -1)
+    # whitened by Omega's Cholesky factor L: X^T Omega^-1 X = W^T W with W = L^-1 X, likewise for y
+    white = torch.linalg.solve_triangular(chol, torch.cat([X, y.expand(B, N, M, d)], -1), upper=False)
+    W, v = white[..., :Qs + Ql], white[..., Qs + Ql:]
+    G = W.transpose(-1, -2) @ W  # (B, N, Qs + Ql, Qs + Ql)
+    c = W.transpose(-1, -2) @ v  # (B, N, Qs + Ql, d)
+    prior_l = xbar.new_full((Ql,), spread**2)
+    chol_d = torch.linalg.cholesky(G[..., Qs:, Qs:] + torch.diag(1.0 / prior_l))  # (B, N, Ql, Ql)
+    C = G[..., :Qs, Qs:]  # (B, N, Qs, Ql)
+    dc = torch.cholesky_solve(torch.cat([C.transpose(-1, -2), c[..., Qs:, :]], -1), chol_d)  # D^-1 [C^T, c_l]
+    logdet = 2.0 * (torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
+                    + torch.log(torch.diagonal(chol_d, dim1=-2, dim2=-1)).sum(-1))  # (B, N)
+    const = (-0.5 * ((v * v).sum((-2, -1)) - (c[..., Qs:, :] * dc[..., Qs:]).sum((-2, -1)))
+             - 0.5 * d * (logdet + torch.log(prior_l).sum() + M * math.log(2.0 * math.pi)))
+    return BlockTerms(gram=G[..., :Qs, :Qs] - C @ dc[..., :Qs], proj=c[..., :Qs, :] - C @ dc[..., Qs:],
+                      const=const)
+
+
+def combine_block_terms(gram: Tensor, proj: Tensor, const: Tensor, *, slope_scale: float) -> Tensor:
+    """(B,) the block evidence from the sequences' shares summed over them, gram (B, Qs, Qs), proj (B, Qs, d),
+    const (B,): the shared coefficients integrated out under their prior Lambda_s."""
+    Qs, d = proj.shape[-2:]
+    K = Qs // (d + 2)
+    prior_s = torch.tensor([1.0 / d] + [slope_scale**2] * d + [1.0], dtype=gram.dtype, device=gram.device).repeat(K)
+    chol_s = torch.linalg.cholesky(gram + torch.diag(1.0 / prior_s))
+    quad = (proj * torch.cholesky_solve(proj, chol_s)).sum((-2, -1))
+    logdet = 2.0 * torch.log(torch.diagonal(chol_s, dim1=-2, dim2=-1)).sum(-1) + torch.log(prior_s).sum()
+    return const + 0.5 * quad - 0.5 * d * logdet
+
+
 def block_log_evidence(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, valid: Tensor, labels: Tensor,
                        straight: Tensor, *, tolerance: float, spread: float, slope_scale: float) -> Tensor:
     """(B,) log p(increments of the block means | labelling) (module docstring).
@@ -108,55 +191,6 @@ def block_log_evidence(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, va
         labels: (B, N, T) long states in [0, K); straight: (B, K) bool, the states scored as straight.
         tolerance: sigma_u of the curved states; spread: omega; slope_scale: s.
     """
-    B, N, T = labels.shape
-    K = straight.shape[-1]
-    d = xbar.shape[-1]
-    p = d + 1
-    M = T - 1
-    dt = xbar.dtype
-    inc = valid[:, 1:] & valid[:, :-1]  # (N, M)
-    ds = (sbar[:, 1:] - sbar[:, :-1]).clamp_min(0.0) * inc
-    y = (xbar[:, 1:] - xbar[:, :-1]) * inc.unsqueeze(-1)  # (N, M, d)
-    same = (labels[..., 1:] == labels[..., :-1]) & inc  # (B, N, M)
-    switch = inc & ~same
-    own = labels[..., 1:]
-    is_straight = torch.gather(straight, 1, own.reshape(B, -1)).reshape(B, N, M) & same
-    is_curved = same & ~is_straight
-    # Omega: tridiagonal per sequence, the padded increments unit-variance
-    diag = torch.where(inc, var[:, 1:] + var[:, :-1], torch.ones_like(ds)).expand(B, N, M)
-    diag = diag + is_curved * (ds * tolerance) ** 2 + switch * ds**2
-    off = -(var[:, 1:-1] * (inc[:, 1:] & inc[:, :-1])).expand(B, N, M - 1)
-    omega = torch.diag_embed(diag) + torch.diag_embed(off, 1) + torch.diag_embed(off, -1)
-    chol = torch.linalg.cholesky(omega)  # (B, N, M, M)
-    # X per sequence, only its nonzero columns: per state the shared [direction, p field coefficients], then the
-    # sequence's own [turn, offset]; the own columns of different sequences never meet, so they are eliminated per
-    # sequence (a Schur complement) before the shared block is factored.
-    onehot = torch.nn.functional.one_hot(own, K).to(dt)  # (B, N, M, K)
-    s_cols = onehot * (is_straight * ds).unsqueeze(-1)  # (B, N, M, K)
-    c_cols = onehot * (is_curved * ds).unsqueeze(-1)
-    shared = torch.cat([s_cols.unsqueeze(-1), c_cols.unsqueeze(-1) * zmid.view(1, N, M, 1, p)], -1)  # (.., K, 1 + p)
-    local = torch.stack([s_cols, c_cols], -1)  # (B, N, M, K, 2)
-    Qs, Ql = K * (1 + p), 2 * K
-    X = torch.cat([shared.reshape(B, N, M, Qs), local.reshape(B, N, M, Ql)], -1)
-    prior_s = torch.tensor([1.0 / d] + [slope_scale**2] * d + [1.0], dtype=dt, device=xbar.device).repeat(K)
-    prior_l = xbar.new_full((Ql,), spread**2)
-    # whitened by Omega's Cholesky factor L: X^T Omega^-1 X = W^T W with W = L^-1 X, likewise for y
-    white = torch.linalg.solve_triangular(chol, torch.cat([X, y.expand(B, N, M, d)], -1), upper=False)
-    W, v = white[..., :Qs + Ql], white[..., Qs + Ql:]
-    yoy = (v * v).sum((1, 2))  # (B, d)
-    G = W.transpose(-1, -2) @ W  # (B, N, Qs + Ql, Qs + Ql)
-    c = W.transpose(-1, -2) @ v  # (B, N, Qs + Ql, d)
-    D = G[..., Qs:, Qs:] + torch.diag(1.0 / prior_l)
-    chol_d = torch.linalg.cholesky(D)  # (B, N, Ql, Ql)
-    C = G[..., :Qs, Qs:]  # (B, N, Qs, Ql)
-    dc = torch.cholesky_solve(torch.cat([C.transpose(-1, -2), c[..., Qs:, :]], -1), chol_d)  # D^-1 [C^T, c_l]
-    S = (G[..., :Qs, :Qs] - C @ dc[..., :Qs]).sum(1) + torch.diag(1.0 / prior_s)  # (B, Qs, Qs)
-    cs = (c[..., :Qs, :] - C @ dc[..., Qs:]).sum(1)  # (B, Qs, d)
-    chol_s = torch.linalg.cholesky(S)
-    quad = (cs * torch.cholesky_solve(cs, chol_s)).sum(-2) + (c[..., Qs:, :] * dc[..., Qs:]).sum((1, 2))  # (B, d)
-    logdet_omega = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum((-1, -2))
-    logdet_a = 2.0 * (torch.log(torch.diagonal(chol_s, dim1=-2, dim2=-1)).sum(-1)
-                      + torch.log(torch.diagonal(chol_d, dim1=-2, dim2=-1)).sum((-1, -2)))
-    logdet_prior = torch.log(prior_s).sum() + N * torch.log(prior_l).sum()
-    return (-0.5 * (yoy - quad).sum(-1)
-            - 0.5 * d * (logdet_omega + logdet_prior + logdet_a + N * M * math.log(2.0 * math.pi)))
+    terms = block_sequence_terms(xbar, sbar, var, zmid, valid, labels, straight, tolerance=tolerance, spread=spread,
+                                 slope_scale=slope_scale)
+    return combine_block_terms(terms.gram.sum(1), terms.proj.sum(1), terms.const.sum(1), slope_scale=slope_scale)
