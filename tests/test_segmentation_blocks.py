@@ -130,7 +130,8 @@ def test_block_emission_finds_the_mild_corner_the_direction_emission_merges():
 
 
 def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkeypatch):
-    """With the block emission the map search ranks its shift and reassignment candidates by the block evidence:
+    """With the block emission the map search ranks its shift (births of a switch among them, to a state the other
+    demonstrations use there or to a new one) and reassignment candidates by the block evidence:
     the change of one sequence's share added to the others' (``_Run._block_deltas``) equals the difference of
     ``block_log_evidence`` of the whole candidate and of the current labelling, every state keeping the current
     labelling's profiled component (a new state that of the state whose runs it receives), plus log 1/2 per state
@@ -171,20 +172,31 @@ def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkey
     def n_used(lab, k):
         return (torch.nn.functional.one_hot(lab, k).bool() & run.valid.unsqueeze(-1)).flatten(-3, -2).any(-2).sum(-1)
 
-    cand_s, cand_f, seq, touched = run._shifts(s, F)
-    fast = run._block_deltas(s, cand_s, seq, K)
-    ref = (evidence(cand_s, straight.expand(cand_s.shape[0], K)) - evidence(s[None], straight[None])
-           + (n_used(cand_s, K) - n_used(s[None], K)) * np.log(0.5))
+    def reference(cand, rows_seq, k):
+        """block_log_evidence of every candidate minus the current one, components held (a new state, label k - 1,
+        that of the state it takes its samples from), plus log 1/2 per state gained."""
+        st = torch.cat([straight, torch.zeros(k - K, dtype=torch.bool)]).expand(cand.shape[0], k).clone()
+        rows = cand[torch.arange(cand.shape[0]), rows_seq]
+        first = (rows == k - 1).to(torch.uint8).argmax(-1)
+        if k > K:
+            st[:, k - 1] = straight[s[rows_seq, first]]
+        return (evidence(cand, st) - evidence(s[None], st[:1])
+                + (n_used(cand, k) - n_used(s[None], k)) * np.log(0.5))
+
+    Fp = torch.nn.functional.pad(F, (0, 1))  # the free column of the shift step: births of a new state
+    cand_s, cand_f, seq, touched = run._shifts(s, Fp)
+    assert (cand_s == K).flatten(1).any(1).any() and (cand_s[:, :, 1:] != cand_s[:, :, :-1]).sum((1, 2)).gt(
+        (s[:, 1:] != s[:, :-1]).sum()).any()  # births among the candidates
+    fast = run._block_deltas(s, cand_s, seq, K + 1)
+    ref = reference(cand_s, seq, K + 1)
     assert torch.allclose(fast, ref, rtol=0, atol=1e-7), float((fast - ref).abs().max())
     score = sum(parts(s[None], F[None]).values())[0]
-    shift_scores = run._shift_scores(s, F, cand_s, cand_f, seq, touched, score, hyper)
-    cand, cur = parts(cand_s, cand_f), parts(s[None], F[None])
+    shift_scores = run._shift_scores(s, Fp, cand_s, cand_f, seq, touched, score, hyper)
+    cand, cur = parts(cand_s, cand_f), parts(s[None], Fp[None])
     others = sum(cand[k] - cur[k] for k in cand if k != "emission")
     assert torch.allclose(shift_scores, score + fast + others, rtol=0, atol=1e-7)
 
     cs, cf, i, k, j = run._reassignments(s, F)
-    fast = run._block_deltas(s, cs, i, K + 1, moved=k)
-    st = torch.cat([straight, torch.zeros(1, dtype=torch.bool)]).expand(cs.shape[0], K + 1).clone()
-    st[:, K] = straight[k]
-    ref = (evidence(cs, st) - evidence(s[None], st[:1]) + (n_used(cs, K + 1) - n_used(s[None], K + 1)) * np.log(0.5))
+    fast = run._block_deltas(s, cs, i, K + 1)
+    ref = reference(cs, i, K + 1)
     assert (j == K).any() and torch.allclose(fast, ref, rtol=0, atol=1e-7), float((fast - ref).abs().max())

@@ -181,7 +181,7 @@ posterior says, then switched one state at a time while that raises the evidence
 The chains sample the direction model, which only seeds the search and proposes its relabellings; the shift and
 reassignment moves rank their candidates by the block evidence itself (each candidate changes one sequence, whose
 share alone is recomputed, the components held at the current labelling's, :meth:`_Run._block_deltas`), where ranking
-them by the direction emission's terms left LASA Multi_Models_1 at modes 5-28 nats below the best one on 4 of 10
+them by the direction emission's terms left LASA Multi_Models_1 at modes 9-28 nats below the best one on 4 of 10
 seeds. The tempered
 position term is meant to be off with it (``position_weight=0``): with it on, the Gaussians' gain from cutting a
 long leg cut the scoop's transfer arc twice more on its four-demonstration case 2. Measured: row "block emission" of
@@ -787,11 +787,11 @@ class _Run:
     def _block_options(self) -> dict:
         return {"tolerance": self.cfg.block_tolerance, "spread": DEMO_SPREAD, "slope_scale": self.cfg.slope_scale}
 
-    def _block_deltas(self, s: Tensor, cand_s: Tensor, seq: Tensor, K: int, moved: Tensor | None = None) -> Tensor:
+    def _block_deltas(self, s: Tensor, cand_s: Tensor, seq: Tensor, K: int) -> Tensor:
         """(P,) change of :meth:`_block_evidence` from the labelling s (N, T) to the candidates cand_s (P, N, T) over
         K states, each differing from s in its sequence ``seq`` alone, with every state keeping the component that s
-        profiles to; with ``moved`` (P,), label K - 1 is a new state and takes the component of the state whose runs
-        it receives. Only the changed sequence's share is recomputed (:func:`~.blocks.block_sequence_terms`); the map
+        profiles to; label K - 1, when s does not use it, is a new state and takes the component of the state s has
+        where a candidate first uses it (whose runs it receives). Only the changed sequence's share is recomputed (:func:`~.blocks.block_sequence_terms`); the map
         search confirms a move by the full score, which profiles the components anew."""
         N, T = s.shape
         valid = self.valid
@@ -813,9 +813,10 @@ class _Run:
             cs, sq = cand_s[part: part + _SHIFT_CHUNK], seq[part: part + _SHIFT_CHUNK]
             P = sq.numel()
             st = straight.unsqueeze(0).expand(P, K).clone()
-            if moved is not None:
-                st[:, K - 1] = straight[moved[part: part + _SHIFT_CHUNK]]
             rows = cs[torch.arange(P, device=self.device), sq].unsqueeze(1)  # (P, 1, T)
+            if not bool((s == K - 1).any()):
+                first = (rows[:, 0] == K - 1).to(torch.uint8).argmax(-1)  # (P,) 0 where unused: any component
+                st[:, K - 1] = straight[s[sq, first]]
             terms = block_sequence_terms(xbar[sq].unsqueeze(1), sbar[sq].unsqueeze(1), var[sq].unsqueeze(1),
                                          zmid[sq].unsqueeze(1), valid[sq].unsqueeze(1), rows, st, **opts)
             parts = [tot - b[sq] + t[:, 0] for tot, b, t in zip(total, base, (terms.gram, terms.proj, terms.const))]
@@ -1720,6 +1721,8 @@ class _Run:
         shift at once (each changes its own sequence), else the best alone, scored as the current score plus the
         change of the terms a shift touches and confirmed by the full score ``score_of``; the new (s, F, score), or
         None when no shift raises the score."""
+        if self.blocks is not None:  # a free column: a birth may give a run's end or start to a new state
+            F = torch.nn.functional.pad(F, (0, 1))
         shifted = self._shifts(s, F)
         if shifted is None:
             return None
@@ -1793,6 +1796,8 @@ class _Run:
                 else:  # the new switch within D of the removed run
                     spans.append((i, lo, hi, values[r - 1], values[r + 1], max(lo + D, starts[r] - D),
                                   min(hi - D, ends[r] + D), values[r]))
+        if self.blocks is not None:
+            spans += self._birth_spans(s_cpu, lengths, F.shape[-1])
         if not spans:
             return None
         sp = torch.tensor(spans, dtype=torch.long, device=self.device)  # (W, 8)
@@ -1820,8 +1825,35 @@ class _Run:
         K = F.shape[-1]
         used = (torch.nn.functional.one_hot(rows, K).bool() & self.valid[seq].unsqueeze(-1)).any(1)  # (P, K)
         cand_f = F.unsqueeze(0).expand(P, -1, -1).clone()
-        cand_f[p, seq] = F[seq] & used
+        cand_f[p, seq] = used  # the states it keeps (and, after a birth, the state it gains)
         return cand, cand_f, seq, touched
+
+    def _birth_spans(self, s: Tensor, lengths: list[int], K: int) -> list[tuple[int, ...]]:
+        """Births of a switch for :meth:`_shifts` (block emission): in one sequence, a run of state a at least 2D
+        long cut at any grid point leaving both parts D long, its end given to a state b that follows a in some
+        sequence or to a new state, or its start to a state b that precedes a somewhere or to a new state, as spans
+        (seq, lo, hi, first label, second label, first c', last c', -1). The new state is label K - 1, which the
+        labelling s must not use (a free column of F). The shift's moves and deaths only move or remove switches,
+        and the Viterbi relabelling that proposes new ones places them under the direction emission's fields."""
+        D, new = self.D, K - 1
+        runs = []
+        for i in range(self.N):
+            row = s[i, : lengths[i]]
+            starts = [0] + (torch.nonzero(row[1:] != row[:-1]).reshape(-1) + 1).tolist()
+            runs.append(list(zip(starts, starts[1:] + [lengths[i]], row[starts].tolist())))
+        follows = {(a, b) for r in runs for (_, _, a), (_, _, b) in zip(r, r[1:])}
+        spans = []
+        for i, r in enumerate(runs):
+            for q, (lo, hi, a) in enumerate(r):
+                if hi - lo < 2 * D:
+                    continue
+                nxt = r[q + 1][2] if q + 1 < len(r) else None
+                prv = r[q - 1][2] if q > 0 else None
+                for b in sorted({b for x, b in follows if x == a and b != a and b != nxt}) + [new]:
+                    spans.append((i, lo, hi, a, b, lo + D, hi - D, -1))
+                for b in sorted({x for x, b in follows if b == a and x != a and x != prv}) + [new]:
+                    spans.append((i, lo, hi, b, a, lo + D, hi - D, -1))
+        return spans
 
     @staticmethod
     def _best_per_sequence(sc: Tensor, seq: Tensor, score: Tensor) -> list[int]:
@@ -1927,7 +1959,7 @@ class _Run:
                                 duration_phases(torch.cat([cand_s, s[None]]), self.D), self.pace_ratios)
             lp = lp + ev[:P] - ev[P:]
         if self.blocks is not None:
-            lp = lp + self._block_deltas(s, cand_s, i, K + 1, moved=k)
+            lp = lp + self._block_deltas(s, cand_s, i, K + 1)
         ibp = ibp_log_prior(cand_f, hyper[2].expand(P), self.cfg.feature_concentration).to(self.dtype)
         return lp + ibp - ibp_log_prior(F, hyper[2], self.cfg.feature_concentration).to(self.dtype)
 
