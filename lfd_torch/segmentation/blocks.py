@@ -101,19 +101,46 @@ def block_means(positions: Tensor, grid: Tensor, path_length: Tensor) -> tuple[T
 
 @dataclass(frozen=True, eq=False)
 class BlockTerms:
-    """Each sequence's share of the block evidence (leading dims (B, N); summed over N they give the evidence).
+    """Sequences' shares of the block evidence (leading dims, e.g. (B, N); summed over a labelling's sequences they
+    give its evidence, :func:`combine_block_terms`), each on the R states its sequence uses.
 
     Attributes:
-        gram: (B, N, Qs, Qs) X_s^T Omega^-1 X_s less what the sequence's own columns explain (its Schur complement).
-        proj: (B, N, Qs, d) the same for X_s^T Omega^-1 y.
-        const: (B, N) the sequence's own terms: -1/2 (y^T Omega^-1 y - c_l^T D^-1 c_l) summed over the axes,
+        gram: (..., Qr, Qr) X_s^T Omega^-1 X_s less what the sequence's own columns explain (its Schur complement),
+            Qr = R (1 + p) columns, per state [direction, p field coefficients].
+        proj: (..., Qr, d) the same for X_s^T Omega^-1 y.
+        const: (...) the sequence's own terms: -1/2 (y^T Omega^-1 y - c_l^T D^-1 c_l) summed over the axes,
             -d/2 (log|Omega| + log|D| + log|Lambda_l| + M log 2 pi).
-    Qs = K (1 + p) shared columns, per state [direction, p field coefficients].
+        at: (..., Qr) long, the column of each among the K (1 + p) shared columns (distinct within a sequence).
+        columns: K (1 + p).
     """
 
     gram: Tensor
     proj: Tensor
     const: Tensor
+    at: Tensor
+    columns: int
+
+    def __getitem__(self, index) -> BlockTerms:
+        """The shares at ``index`` of the leading dims."""
+        return BlockTerms(self.gram[index], self.proj[index], self.const[index], self.at[index], self.columns)
+
+    def add_to(self, gram: Tensor, proj: Tensor, const: Tensor, rows: Tensor, sign: float = 1.0) -> None:
+        """Add (sign = -1: subtract) each share, one leading dim (E,), to the totals gram (P, Qk, Qk), proj (P, Qk,
+        d), const (P,) at ``rows`` (E,), in place."""
+        at = self.at
+        gram.index_put_((rows.view(-1, 1, 1), at.unsqueeze(-1), at.unsqueeze(-2)), sign * self.gram, accumulate=True)
+        proj.index_put_((rows.view(-1, 1), at), sign * self.proj, accumulate=True)
+        const.index_add_(0, rows, sign * self.const)
+
+    def totals(self) -> tuple[Tensor, Tensor, Tensor]:
+        """The (B, Qk, Qk), (B, Qk, d), (B,) sums over the second leading dim (the sequences of each labelling)."""
+        B, N = self.const.shape
+        Qk, d = self.columns, self.proj.shape[-1]
+        out = (self.gram.new_zeros(B, Qk, Qk), self.proj.new_zeros(B, Qk, d), self.const.new_zeros(B))
+        rows = torch.arange(B, device=self.const.device).repeat_interleave(N)
+        BlockTerms(self.gram.flatten(0, 1), self.proj.flatten(0, 1), self.const.flatten(0, 1),
+                   self.at.flatten(0, 1), Qk).add_to(*out, rows)
+        return out
 
 
 def block_sequence_terms(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, valid: Tensor, labels: Tensor,
@@ -140,33 +167,66 @@ def block_sequence_terms(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, 
     diag = torch.where(inc, var[..., 1:] + var[..., :-1], torch.ones_like(ds)).expand(B, N, M)
     diag = diag + is_curved * (ds * tolerance) ** 2 + switch * ds**2
     off = -(var[..., 1:-1] * (inc[..., 1:] & inc[..., :-1])).expand(B, N, M - 1)
-    omega = torch.diag_embed(diag) + torch.diag_embed(off, 1) + torch.diag_embed(off, -1)
-    chol = torch.linalg.cholesky(omega)  # (B, N, M, M)
-    # X per sequence, only its nonzero columns: per state the shared [direction, p field coefficients], then the
-    # sequence's own [turn, offset]; the own columns of different sequences never meet, so they are eliminated per
-    # sequence (a Schur complement) before the shared block is factored.
-    onehot = torch.nn.functional.one_hot(own, K).to(dt)  # (B, N, M, K)
-    s_cols = onehot * (is_straight * ds).unsqueeze(-1)  # (B, N, M, K)
-    c_cols = onehot * (is_curved * ds).unsqueeze(-1)
-    shared = torch.cat([s_cols.unsqueeze(-1), c_cols.unsqueeze(-1) * zmid.unsqueeze(-2)], -1)  # (.., K, 1 + p)
-    local = torch.stack([s_cols, c_cols], -1)  # (B, N, M, K, 2)
-    Qs, Ql = K * (1 + p), 2 * K
-    X = torch.cat([shared.reshape(B, N, M, Qs), local.reshape(B, N, M, Ql)], -1)
-    # whitened by Omega's Cholesky factor L: X^T Omega^-1 X = W^T W with W = L^-1 X, likewise for y
-    white = torch.linalg.solve_triangular(chol, torch.cat([X, y.expand(B, N, M, d)], -1), upper=False)
-    W, v = white[..., :Qs + Ql], white[..., Qs + Ql:]
-    G = W.transpose(-1, -2) @ W  # (B, N, Qs + Ql, Qs + Ql)
-    c = W.transpose(-1, -2) @ v  # (B, N, Qs + Ql, d)
+    # X per sequence, only its nonzero columns, per state [direction, p field coefficients, the sequence's own turn,
+    # its own offset]: each increment's row written into its own state's slot. The own columns of different
+    # sequences never meet, so they are eliminated per sequence (a Schur complement) before the shared ones.
+    # Only the R states a sequence uses get slots (R the most any sequence of the batch uses), in the order of
+    # ``order`` (B, N, R); the shares are scattered back to the K states' columns at the end.
+    w = p + 3
+    uses = (torch.nn.functional.one_hot(labels, K).bool() & valid.unsqueeze(-1)).any(-2)  # (B, N, K)
+    R = max(int(uses.sum(-1).max()), 1)
+    order = torch.argsort((~uses).to(torch.uint8), dim=-1, stable=True)[..., :R]  # used states first
+    rank = labels.new_zeros(B, N, K)
+    rank.scatter_(-1, order, torch.arange(R, device=labels.device).expand(B, N, R))
+    slot = torch.gather(rank, -1, own)  # (B, N, M) each increment's slot
+    st, cu = is_straight * ds, is_curved * ds  # (B, N, M)
+    row = torch.cat([st.unsqueeze(-1), cu.unsqueeze(-1) * zmid, st.unsqueeze(-1), cu.unsqueeze(-1)], -1)
+    Q = R * w
+    # [X, y] laid out along the increments first (M, B, N, Q + d), as the whitening recurrence steps through them
+    Z = row.new_zeros(M, B, N, Q + d)
+    Z[..., :Q].unflatten(-1, (R, w)).scatter_(3, slot.movedim(-1, 0).reshape(M, B, N, 1, 1).expand(M, B, N, 1, w),
+                                              row.movedim(-2, 0).unsqueeze(3))
+    Z[..., Q:] = y.movedim(-2, 0)
+    logdet_omega = _tridiagonal_whiten(diag.movedim(-1, 0), off.movedim(-1, 0), Z)
+    Zb = Z.view(M, B * N, Q + d).permute(1, 2, 0)  # (B N, Q + d, M)
+    full_gram = (Zb @ Zb.transpose(-1, -2)).view(B, N, Q + d, Q + d)  # [W, v]^T [W, v]
+    G, c = full_gram[..., :Q, :Q], full_gram[..., :Q, Q:]  # (B, N, Q, Q), (B, N, Q, d)
+    vv = torch.diagonal(full_gram[..., Q:, Q:], dim1=-2, dim2=-1).sum(-1)  # (B, N)
+    column = torch.arange(Q, device=xbar.device) % w
+    shared, local = torch.nonzero(column < p + 1).view(-1), torch.nonzero(column >= p + 1).view(-1)
+    Ql = local.numel()
     prior_l = xbar.new_full((Ql,), spread**2)
-    chol_d = torch.linalg.cholesky(G[..., Qs:, Qs:] + torch.diag(1.0 / prior_l))  # (B, N, Ql, Ql)
-    C = G[..., :Qs, Qs:]  # (B, N, Qs, Ql)
-    dc = torch.cholesky_solve(torch.cat([C.transpose(-1, -2), c[..., Qs:, :]], -1), chol_d)  # D^-1 [C^T, c_l]
-    logdet = 2.0 * (torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
-                    + torch.log(torch.diagonal(chol_d, dim1=-2, dim2=-1)).sum(-1))  # (B, N)
-    const = (-0.5 * ((v * v).sum((-2, -1)) - (c[..., Qs:, :] * dc[..., Qs:]).sum((-2, -1)))
+    Gl = G[..., local[:, None], local]
+    chol_d = torch.linalg.cholesky(Gl + torch.diag(1.0 / prior_l))  # (B, N, Ql, Ql)
+    C = G[..., shared[:, None], local]  # (B, N, Qs, Ql)
+    cl = c[..., local, :]
+    dc = torch.cholesky_solve(torch.cat([C.transpose(-1, -2), cl], -1), chol_d)  # D^-1 [C^T, c_l]
+    Qs = shared.numel()
+    logdet = logdet_omega + 2.0 * torch.log(torch.diagonal(chol_d, dim1=-2, dim2=-1)).sum(-1)  # (B, N)
+    const = (-0.5 * (vv - (cl * dc[..., Qs:]).sum((-2, -1)))
              - 0.5 * d * (logdet + torch.log(prior_l).sum() + M * math.log(2.0 * math.pi)))
-    return BlockTerms(gram=G[..., :Qs, :Qs] - C @ dc[..., :Qs], proj=c[..., :Qs, :] - C @ dc[..., Qs:],
-                      const=const)
+    gram = G[..., shared[:, None], shared] - C @ dc[..., :Qs]  # (B, N, R (1 + p), R (1 + p))
+    proj = c[..., shared, :] - C @ dc[..., Qs:]
+    at = (order.unsqueeze(-1) * (1 + p) + torch.arange(1 + p, device=xbar.device)).view(B, N, Qs)
+    return BlockTerms(gram=gram, proj=proj, const=const, at=at, columns=K * (1 + p))
+
+
+def _tridiagonal_whiten(diag: Tensor, off: Tensor, Z: Tensor) -> Tensor:
+    """Overwrite Z (M, ..., Q) with L^-1 Z and return log|Omega| (...), for the tridiagonal Omega (M x M per
+    batch element) of diagonal ``diag`` (M, ...) and off-diagonal ``off`` (M - 1, ...), L its Cholesky factor (lower
+    bidiagonal). A recurrence along the M increments, in place: O(M Q) where the dense factor and solve are
+    O(M^3 + M^2 Q)."""
+    M = diag.shape[0]
+    l, m = torch.empty_like(diag), torch.empty_like(off)
+    l[0] = diag[0].sqrt()
+    for j in range(M - 1):
+        torch.div(off[j], l[j], out=m[j])
+        torch.sqrt(diag[j + 1] - m[j] * m[j], out=l[j + 1])
+    inv, m = l.reciprocal().unsqueeze(-1), m.unsqueeze(-1)
+    Z[0].mul_(inv[0])
+    for j in range(M - 1):
+        Z[j + 1].addcmul_(m[j], Z[j], value=-1.0).mul_(inv[j + 1])
+    return 2.0 * torch.log(l).sum(0)
 
 
 def combine_block_terms(gram: Tensor, proj: Tensor, const: Tensor, *, slope_scale: float) -> Tensor:
@@ -193,4 +253,4 @@ def block_log_evidence(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, va
     """
     terms = block_sequence_terms(xbar, sbar, var, zmid, valid, labels, straight, tolerance=tolerance, spread=spread,
                                  slope_scale=slope_scale)
-    return combine_block_terms(terms.gram.sum(1), terms.proj.sum(1), terms.const.sum(1), slope_scale=slope_scale)
+    return combine_block_terms(*terms.totals(), slope_scale=slope_scale)

@@ -264,7 +264,6 @@ from lfd_torch.segmentation.dwell import (
 from lfd_torch.segmentation.blocks import (
     DEMO_SPREAD,
     BlockMeans,
-    block_log_evidence,
     block_sequence_terms,
     combine_block_terms,
 )
@@ -764,23 +763,32 @@ class _Run:
                                               self.wide_score_prior, self.cfg.rotation_weight)[1]  # (B, K)
         used = stats[0] > 0  # (B, K)
         B, K = used.shape
-
-        def evidence(lab: Tensor, straight: Tensor) -> Tensor:
-            return block_log_evidence(*self.blocks, self.valid, lab, straight, **self._block_options())
-
+        opts = self._block_options()
+        uses = (torch.nn.functional.one_hot(s, K).bool() & self.valid.unsqueeze(-1)).any(-2)  # (B, N, K)
         straight = (log_straight > math.log(0.5)) & used
-        best = evidence(s, straight)
-        flips = torch.eye(K, dtype=torch.bool, device=s.device)
-        for _ in range(_COMPONENT_ROUNDS):
-            trial = (straight.unsqueeze(1) ^ flips.unsqueeze(0)) & used.unsqueeze(1)  # (B, K, K): state j flipped
-            values = evidence(s.unsqueeze(1).expand(B, K, *s.shape[1:]).reshape(B * K, *s.shape[1:]),
-                              trial.reshape(B * K, K)).reshape(B, K)
+        for r in range(_COMPONENT_ROUNDS):
+            base = block_sequence_terms(*self.blocks, self.valid, s, straight, **opts)
+            total = base.totals()
+            if r == 0:
+                best = combine_block_terms(*total, slope_scale=opts["slope_scale"])
+            # every state j flipped on its own: only the sequences that use j change their share
+            b, j, n = torch.nonzero(uses.transpose(1, 2), as_tuple=True)  # (P,) each (labelling, state, sequence)
+            trial = straight[b].clone()
+            trial[torch.arange(b.numel(), device=s.device), j] ^= True
+            new = block_sequence_terms(*(t[n].unsqueeze(1) for t in self.blocks), self.valid[n].unsqueeze(1),
+                                       s[b, n].unsqueeze(1), trial, **opts)
+            flat = b * K + j
+            out = [tot.repeat_interleave(K, 0) for tot in total]
+            new[:, 0].add_to(*out, flat)
+            base[b, n].add_to(*out, flat, -1.0)
+            values = combine_block_terms(*out, slope_scale=opts["slope_scale"]).view(B, K)
             values = torch.where(used, values, torch.full_like(values, -math.inf))
             top, j = values.max(-1)
             better = top > best + 1e-9
             if not bool(better.any()):
                 break
-            straight = torch.where(better.unsqueeze(-1), trial[torch.arange(B, device=s.device), j], straight)
+            flips = torch.nn.functional.one_hot(j, K).bool() & better.unsqueeze(-1)
+            straight = straight ^ flips
             best = torch.where(better, top, best)
         return best, straight, used
 
@@ -791,7 +799,8 @@ class _Run:
         """(P,) change of :meth:`_block_evidence` from the labelling s (N, T) to the candidates cand_s (P, N, T) over
         K states, each differing from s in its sequence ``seq`` alone, with every state keeping the component that s
         profiles to; label K - 1, when s does not use it, is a new state and takes the component of the state s has
-        where a candidate first uses it (whose runs it receives). Only the changed sequence's share is recomputed (:func:`~.blocks.block_sequence_terms`); the map
+        where a candidate first uses it (whose runs it receives). Only the changed sequence's share is recomputed
+        (:func:`~.blocks.block_sequence_terms`); the map
         search confirms a move by the full score, which profiles the components anew."""
         N, T = s.shape
         valid = self.valid
@@ -801,9 +810,9 @@ class _Run:
         opts = self._block_options()
         xbar, sbar, var, zmid = self.blocks
         base = block_sequence_terms(xbar, sbar, var, zmid, valid, s[None], straight[None], **opts)
-        base = (base.gram[0], base.proj[0], base.const[0])  # (N, ...)
-        total = [t.sum(0) for t in base]
-        current = combine_block_terms(*(t[None] for t in total), slope_scale=opts["slope_scale"])  # (1,)
+        total = base.totals()  # (1, ...)
+        current = combine_block_terms(*total, slope_scale=opts["slope_scale"])  # (1,)
+        base = base[0]  # (N, ...)
 
         def used(lab: Tensor) -> Tensor:
             return (torch.nn.functional.one_hot(lab, K).bool() & valid.unsqueeze(-1)).flatten(-3, -2).any(-2).sum(-1)
@@ -819,7 +828,10 @@ class _Run:
                 st[:, K - 1] = straight[s[sq, first]]
             terms = block_sequence_terms(xbar[sq].unsqueeze(1), sbar[sq].unsqueeze(1), var[sq].unsqueeze(1),
                                          zmid[sq].unsqueeze(1), valid[sq].unsqueeze(1), rows, st, **opts)
-            parts = [tot - b[sq] + t[:, 0] for tot, b, t in zip(total, base, (terms.gram, terms.proj, terms.const))]
+            parts = [tot.expand(P, *tot.shape[1:]).clone() for tot in total]
+            rows = torch.arange(P, device=self.device)
+            terms[:, 0].add_to(*parts, rows)
+            base[sq].add_to(*parts, rows, -1.0)
             ev = combine_block_terms(*parts, slope_scale=opts["slope_scale"])
             out.append(ev - current + (used(cs) - used(s[None])).to(ev) * math.log(0.5))
         return torch.cat(out)
