@@ -39,6 +39,13 @@ tridiagonal (the shared block noise of consecutive increments), so the evidence 
 
 The first block of every sequence (its start) is the same for every labelling and left out. Padded increments
 (beyond a sequence's end) are unit-variance zeros, a constant.
+
+Computation. Each demonstration's own coefficients (turns, offsets) appear in its rows alone, so they are integrated
+out per sequence (a Schur complement of A), which leaves each sequence's share of the shared block of A and of c
+(:class:`BlockTerms`, :func:`block_sequence_terms`); the shares of a labelling's sequences are summed and the shared
+coefficients integrated out last (:func:`combine_block_terms`). A move of the map search that changes one sequence
+recomputes that sequence's share alone. Omega's Cholesky factor is bidiagonal, so the whitening L^-1 [X, y] is a
+recurrence along the increments, O(M) per column, and a sequence's columns are those of the states it uses.
 """
 
 from __future__ import annotations
