@@ -185,7 +185,7 @@ them by the direction emission's terms left LASA Multi_Models_1 at modes 9-28 na
 seeds. For the same reason the shift move also proposes births of a switch (:meth:`_Run._birth_spans`: a run's end
 or start given to a state that follows or precedes it in another demonstration, or to a new state): the Viterbi
 relabelling, the only other source of new switches, places them under the direction emission's fields (LASA
-Multi_Models_1: demonstration 6 in one step on 3 of 10 seeds, 4-10 nats below the two steps found on the others;
+Multi_Models_1: demonstration 6 in one step on 3 of 10 seeds, 6-10 nats below the best two-step mode;
 two steps on 10 of 10 with births). The tempered
 position term is meant to be off with it (``position_weight=0``): with it on, the Gaussians' gain from cutting a
 long leg cut the scoop's transfer arc twice more on its four-demonstration case 2. Measured: row "block emission" of
