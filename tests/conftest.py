@@ -1,4 +1,4 @@
-"""Shared fixtures: one torch thread, a fresh seeded generator per test, CUDA marker."""
+"""Shared fixtures: one torch thread, a fresh seeded generator per test, CUDA marker, the sampler runs of segment."""
 
 from __future__ import annotations
 
@@ -23,3 +23,18 @@ def cuda_available() -> bool:
 
 
 requires_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
+
+
+def capture_runs(monkeypatch) -> list:
+    """The sampler runs (``_Run``) that ``segment`` makes from here on, in order (their observations and scoring)."""
+    import lfd_torch.segmentation.sampler as sampler_module
+
+    runs = []
+    original = sampler_module._Run.sample
+
+    def capture(self):
+        runs.append(self)
+        return original(self)
+
+    monkeypatch.setattr(sampler_module._Run, "sample", capture)
+    return runs

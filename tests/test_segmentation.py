@@ -36,7 +36,7 @@ from lfd_torch.segmentation import (
     segment,
 )
 from lfd_torch.segmentation.segmentation import _steps_from_bounds
-from conftest import requires_cuda
+from conftest import capture_runs, requires_cuda
 
 F64 = torch.float64
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -140,19 +140,6 @@ def test_steps_are_maximal_runs_of_hmm_states(case):
 
 # ---------------------------------------------------------------------------------------------- 2. mutants
 MUTATION_CASE = ("constant", 2, 4, 3, 0)
-
-
-def capture_runs(monkeypatch) -> list:
-    """The sampler runs (``_Run``) that ``segment`` makes from here on, in order (their observations and scoring)."""
-    runs = []
-    original = sampler_module._Run.sample
-
-    def capture(self):
-        runs.append(self)
-        return original(self)
-
-    monkeypatch.setattr(sampler_module._Run, "sample", capture)
-    return runs
 
 
 def collapsed_score(run, res: SamplerResult, s: torch.Tensor, F: torch.Tensor) -> float:

@@ -11,6 +11,7 @@ from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
 from lfd_torch.segmentation import segment
 from lfd_torch.segmentation.blocks import BlockMeans, block_log_evidence, block_means
 from lfd_torch.segmentation.sampler import BetaProcessHMMSampler
+from conftest import capture_runs
 
 
 def test_block_means_are_the_means_of_the_samples_nearest_each_grid_point():
@@ -140,14 +141,7 @@ def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkey
     import lfd_torch.segmentation.sampler as sampler_module
     from lfd_torch.segmentation.synthetic import multi_step_demos
 
-    runs = []
-    original = sampler_module._Run.sample
-
-    def capture(self):
-        runs.append(self)
-        return original(self)
-
-    monkeypatch.setattr(sampler_module._Run, "sample", capture)
+    runs = capture_runs(monkeypatch)
     syn = multi_step_demos(torch.Generator().manual_seed(0), n_demos=3, n_steps=3, dim=2, profile="constant")
     seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), block_emission=True, position_weight=0.0,
                   n_iterations=10)
