@@ -71,6 +71,8 @@ VARIANTS: tuple[Variant, ...] = (
     Variant("block emission, block-scored search", {"block_emission": True, "position_weight": 0.0},
             "bench_segmentation_segment_block_search.json", "bench_segmentation_held_out_block_search.json",
             "bench_segmentation_seeds_block_search.json"),
+    Variant("block emission with the position term", {"block_emission": True, "position_weight": None},
+            "bench_segmentation_segment_block_position.json"),
     Variant("tight tolerance", {"direction_noise": 0.05}, "bench_segmentation_segment_tolerance005.json", None,
             "bench_segmentation_seeds_tolerance005.json"),
     Variant("learned correlated tolerance", {"tolerance_correlation": None},
