@@ -70,8 +70,9 @@ def _written_out_evidence(xbar, sbar, var, zmid, valid, labels, straight, tol, s
 
 
 def test_block_evidence_is_the_gaussian_of_its_written_out_model():
-    """Two sequences of different lengths, three labellings scored in one batch (two states, straight then curved;
-    three states with the first two straight; the states swapped): each evidence is log N(y; 0, Omega + X Lambda
+    """Two sequences of different lengths, four labellings scored in one batch (two states, straight then curved;
+    three states with the first two straight; the states swapped; each sequence with states of its own, one state at
+    a single point and another label in the padding): each evidence is log N(y; 0, Omega + X Lambda
     X^T) of the increments, with every column and covariance entry written out by loops (scipy as the
     reference)."""
     g = torch.Generator().manual_seed(1)
@@ -85,14 +86,34 @@ def test_block_evidence_is_the_gaussian_of_its_written_out_model():
     valid[1, 8] = False  # the second sequence is one point shorter
     labels = torch.tensor([[[0, 0, 0, 1, 1, 1, 1, 1, 1], [0, 0, 1, 1, 1, 1, 1, 1, 1]],
                            [[0, 0, 0, 1, 1, 1, 2, 2, 2], [0, 0, 1, 1, 1, 2, 2, 2, 2]],
-                           [[2, 2, 2, 0, 0, 0, 1, 1, 1], [2, 2, 0, 0, 0, 1, 1, 1, 1]]])
-    straight = torch.tensor([[True, False, False], [True, True, False], [False, True, True]])
+                           [[2, 2, 2, 0, 0, 0, 1, 1, 1], [2, 2, 0, 0, 0, 1, 1, 1, 1]],
+                           [[1, 1, 1, 1, 0, 0, 0, 0, 0], [2, 2, 2, 2, 2, 2, 1, 1, 0]]])  # different states per sequence,
+    # a state at one point only, a label in the padding
+    straight = torch.tensor([[True, False, False], [True, True, False], [False, True, True], [True, False, True]])
     tol, spread, slope = 0.2, 0.05, 1.0
     mine = block_log_evidence(xbar, sbar, var, zmid, valid, labels, straight, tolerance=tol, spread=spread,
                               slope_scale=slope)
     for b in range(labels.shape[0]):
         ref = _written_out_evidence(xbar, sbar, var, zmid, valid, labels[b], straight[b], tol, spread, slope)
         assert float(mine[b]) == pytest.approx(ref, abs=1e-8)
+
+
+def test_block_evidence_rejects_zero_or_nonfinite_block_variances():
+    """A block noise variance of 0 (a position noise estimate of 0) or NaN makes Omega singular: a typed error naming
+    ``var``, not the NaN the whitening recurrence would return."""
+    N, T, d = 1, 5, 2
+    xbar = torch.zeros(N, T, d, dtype=torch.float64)
+    sbar = torch.arange(T, dtype=torch.float64).expand(N, T)
+    zmid = torch.ones(N, T - 1, d + 1, dtype=torch.float64)
+    valid = torch.ones(N, T, dtype=torch.bool)
+    labels = torch.zeros(1, N, T, dtype=torch.long)
+    straight = torch.ones(1, 1, dtype=torch.bool)
+    for bad in (0.0, float("nan")):
+        var = torch.full((N, T), 0.01, dtype=torch.float64)
+        var[0, 2] = bad
+        with pytest.raises(InvalidArgumentError, match="var"):
+            block_log_evidence(xbar, sbar, var, zmid, valid, labels, straight, tolerance=0.1, spread=0.05,
+                               slope_scale=1.0)
 
 
 def test_block_emission_options_are_checked():
@@ -130,7 +151,8 @@ def test_block_emission_finds_the_mild_corner_the_direction_emission_merges():
     assert all(abs(c - t) <= 0.03 * T for c, t in zip(cuts, truth)), (cuts, truth)
 
 
-def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkeypatch):
+@pytest.mark.parametrize("position_weight", [0.0, None], ids=["directions", "with_position"])
+def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkeypatch, position_weight):
     """With the block emission the map search ranks its shift (births of a switch among them, to a state the other
     demonstrations use there or to a new one) and reassignment candidates by the block evidence:
     the change of one sequence's share added to the others' (``_Run._block_deltas``) equals the difference of
@@ -143,25 +165,30 @@ def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkey
 
     runs = capture_runs(monkeypatch)
     syn = multi_step_demos(torch.Generator().manual_seed(0), n_demos=3, n_steps=3, dim=2, profile="constant")
-    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), block_emission=True, position_weight=0.0,
-                  n_iterations=10)
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), block_emission=True,
+                  position_weight=position_weight, n_iterations=10)
     run, res = runs[-1], seg.sampler
     s, F = res.states, res.features
     K = F.shape[-1]
     hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
              for k in ("transition_concentration", "stickiness", "feature_mass")]
 
-    def parts(lab, feat):
+    def parts(lab, feat, block=True):
         phases = sampler_module.duration_phases(lab, run.D)
-        return run._collapsed_score_parts(lab, feat, phases, *(h.expand(lab.shape[0]) for h in hyper))
+        return run._collapsed_score_parts(lab, feat, phases, *(h.expand(lab.shape[0]) for h in hyper), block=block)
 
     N, T = s.shape
     onehot = torch.nn.functional.one_hot(s, K).to(run.dtype) * run.valid.unsqueeze(-1)
     age, w, _ = run._score_view(s[None])
-    straight = run._block_profile(s[None], age, w.expand(1, -1), onehot.reshape(1, N * T, K))[1][0]
+    profiled, straight, _ = run._block_profile(s[None], age, w.expand(1, -1), onehot.reshape(1, N * T, K))
+    straight = straight[0]
 
     def evidence(lab, st):
         return block_log_evidence(*run.blocks, run.valid, lab, st, **run._block_options())
+
+    # the profile's evidence (its component switches scored by recomputing only the sequences that use the state)
+    # is the evidence of the components it returns
+    assert float(profiled[0]) == pytest.approx(float(evidence(s[None], straight[None])[0]), abs=1e-7)
 
     def n_used(lab, k):
         return (torch.nn.functional.one_hot(lab, k).bool() & run.valid.unsqueeze(-1)).flatten(-3, -2).any(-2).sum(-1)
@@ -186,8 +213,8 @@ def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkey
     assert torch.allclose(fast, ref, rtol=0, atol=1e-7), float((fast - ref).abs().max())
     score = sum(parts(s[None], F[None]).values())[0]
     shift_scores = run._shift_scores(s, Fp, cand_s, cand_f, seq, touched, score, hyper)
-    cand, cur = parts(cand_s, cand_f), parts(s[None], Fp[None])
-    others = sum(cand[k] - cur[k] for k in cand if k != "emission")
+    cand, cur = parts(cand_s, cand_f, block=False), parts(s[None], Fp[None], block=False)
+    others = sum(cand[k] - cur[k] for k in cand)  # the position terms (with_position) among them
     assert torch.allclose(shift_scores, score + fast + others, rtol=0, atol=1e-7)
 
     cs, cf, i, k, j = run._reassignments(s, F)

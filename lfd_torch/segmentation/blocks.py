@@ -56,10 +56,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import ShapeMismatchError
+from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
 
 __all__ = ["BlockMeans", "BlockTerms", "block_means", "block_sequence_terms", "combine_block_terms",
-           "block_log_evidence", "DEMO_SPREAD"]
+           "block_log_evidence", "check_block_variances", "DEMO_SPREAD"]
 
 #: omega, the prior scale (rad) of each demonstration's own turn of a straight state's direction: demonstrations put
 #: their corners a few percent of a leg apart, which turns a leg by a few degrees (the benchmark's jitter, 2 % of the
@@ -159,7 +159,6 @@ def block_sequence_terms(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, 
     d = xbar.shape[-1]
     p = d + 1
     M = T - 1
-    dt = xbar.dtype
     if xbar.ndim == 3:
         xbar, sbar, var, zmid, valid = (t.unsqueeze(0) for t in (xbar, sbar, var, zmid, valid))
     inc = valid[..., 1:] & valid[..., :-1]  # (1 or B, N, M)
@@ -258,6 +257,16 @@ def block_log_evidence(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, va
         labels: (B, N, T) long states in [0, K); straight: (B, K) bool, the states scored as straight.
         tolerance: sigma_u of the curved states; spread: omega; slope_scale: s.
     """
+    check_block_variances(var, valid)
     terms = block_sequence_terms(xbar, sbar, var, zmid, valid, labels, straight, tolerance=tolerance, spread=spread,
                                  slope_scale=slope_scale)
     return combine_block_terms(*terms.totals(), slope_scale=slope_scale)
+
+
+def check_block_variances(var: Tensor, valid: Tensor) -> None:
+    """Raise InvalidArgumentError unless every valid block's noise variance ``var`` is finite and positive (Omega
+    must be positive definite; the whitening recurrence would otherwise give NaN silently)."""
+    bad = valid & ~(torch.isfinite(var) & (var > 0))
+    if bool(bad.any()):
+        raise InvalidArgumentError(f"var: the block noise variances must be finite and > 0 ({int(bad.sum())} are not; "
+                                   "is the position noise estimate 0?)")

@@ -269,6 +269,7 @@ from lfd_torch.segmentation.blocks import (
     DEMO_SPREAD,
     BlockMeans,
     block_sequence_terms,
+    check_block_variances,
     combine_block_terms,
 )
 from lfd_torch.segmentation.features import ibp_log_prior, shared_log_odds, unique_feature_rate
@@ -748,6 +749,7 @@ class _Run:
             sbar[i, n:] = sbar[i, n - 1]
             var[i, :n] = (blocks.noise / radius) ** 2 / c.to(self.x)
         zmid = 0.5 * (self.obs.z[:, 1:] + self.obs.z[:, :-1])
+        check_block_variances(var, self.valid)
         return xbar, sbar, var, zmid
 
     def _block_evidence(self, s: Tensor, age: Tensor | None, w: Tensor, onehot: Tensor) -> Tensor:
@@ -1416,10 +1418,11 @@ class _Run:
         return sum(self._collapsed_score_parts(s, F, phase, alpha, kappa, mass).values())
 
     def _collapsed_score_parts(self, s: Tensor, F: Tensor, phase: Tensor, alpha: Tensor, kappa: Tensor,
-                               mass: Tensor) -> dict[str, Tensor]:
+                               mass: Tensor, block: bool = True) -> dict[str, Tensor]:
         """The terms of :meth:`_collapsed_score`, each (B,): "emission" (the states' field evidence with the
         Student-t profile, the reliability Jacobian and the tempered position evidence), "dwell" (0 without the
-        dwell term), "transitions", "initial" and "features" (the IBP prior of F).
+        dwell term), "transitions", "initial" and "features" (the IBP prior of F). ``block=False``: the emission
+        without the block emission's evidence (the map search scores its changes by :meth:`_block_deltas`).
 
         Terms: the IBP prior of F; per sequence the
         uniform initial state and the Dirichlet-multinomial of the free transitions,
@@ -1438,7 +1441,7 @@ class _Run:
         parts = {}
         nu = self.cfg.robust_dof
         if self.blocks is not None:  # the states' motion on the block means instead of the grid directions
-            lp = self._block_evidence(s, age, w, onehot)
+            lp = self._block_evidence(s, age, w, onehot) if block else lp.new_zeros(B)
         elif nu is not None:
             lam = self._profile_scales(age, w, onehot)
             half = 0.5 * nu
@@ -1737,7 +1740,8 @@ class _Run:
         shift at once (each changes its own sequence), else the best alone, scored as the current score plus the
         change of the terms a shift touches and confirmed by the full score ``score_of``; the new (s, F, score), or
         None when no shift raises the score."""
-        if self.blocks is not None:  # a free column: a birth may give a run's end or start to a new state
+        if self.blocks is not None:  # a free column: a birth may give a run's end or start to a new state (when
+            # births of several sequences are taken at once they share it, which the full score then judges)
             F = torch.nn.functional.pad(F, (0, 1))
         shifted = self._shifts(s, F)
         if shifted is None:
