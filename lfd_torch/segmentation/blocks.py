@@ -153,7 +153,9 @@ class BlockTerms:
 def block_sequence_terms(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, valid: Tensor, labels: Tensor,
                          straight: Tensor, *, tolerance: float, spread: float, slope_scale: float) -> BlockTerms:
     """Each sequence's share of :func:`block_log_evidence` (same arguments; the data may also carry a leading
-    batch dimension (B, N, ...), e.g. one sequence of a different demonstration per labelling)."""
+    batch dimension (B, N, ...), e.g. one sequence of a different demonstration per labelling). ``slope_scale``
+    belongs to the shared coefficients' prior, applied by :func:`combine_block_terms`; it is accepted here so that
+    both take the same options."""
     B, N, T = labels.shape
     K = straight.shape[-1]
     d = xbar.shape[-1]
@@ -221,7 +223,8 @@ def _tridiagonal_whiten(diag: Tensor, off: Tensor, Z: Tensor) -> Tensor:
     """Overwrite Z (M, ..., Q) with L^-1 Z and return log|Omega| (...), for the tridiagonal Omega (M x M per
     batch element) of diagonal ``diag`` (M, ...) and off-diagonal ``off`` (M - 1, ...), L its Cholesky factor (lower
     bidiagonal). A recurrence along the M increments, in place: O(M Q) where the dense factor and solve are
-    O(M^3 + M^2 Q)."""
+    O(M^3 + M^2 Q); with LASA's M = 76 the loop is 3x faster than ``torch.linalg.cholesky`` and ``solve_triangular``
+    on the dense Omega (one-off timing, 32 x 7 sequences, 60 columns), and it needs no M x M matrix."""
     M = diag.shape[0]
     l, m = torch.empty_like(diag), torch.empty_like(off)
     l[0] = diag[0].sqrt()
