@@ -182,7 +182,8 @@ The chains sample the direction model, which only seeds the search and proposes 
 reassignment moves rank their candidates by the block evidence itself (each candidate changes one sequence, whose
 share alone is recomputed, the components held at the current labelling's, :meth:`_Run._block_deltas`), where ranking
 them by the direction emission's terms left LASA Multi_Models_1 at modes 9-28 nats below the best one on 4 of 10
-seeds. For the same reason the shift move also proposes births of a switch (:meth:`_Run._birth_spans`: a run's end
+seeds (one-off runs; ``experiments/segmentation_studies.md``, "Block emission: a search scored by the block
+evidence"). For the same reason the shift move also proposes births of a switch (:meth:`_Run._birth_spans`: a run's end
 or start given to a state that follows or precedes it in another demonstration, or to a new state): the Viterbi
 relabelling, the only other source of new switches, places them under the direction emission's fields (LASA
 Multi_Models_1: demonstration 6 in one step on 3 of 10 seeds, 6-10 nats below the best two-step mode;
@@ -583,6 +584,17 @@ def _compact_columns(s: Tensor, F: Tensor) -> tuple[Tensor, Tensor]:
     cols = F.any(0)
     remap = torch.cumsum(cols.long(), 0) - 1
     return remap[s], F[:, cols]
+
+
+def _runs(s: Tensor, lengths: Tensor) -> list[list[tuple[int, int, int]]]:
+    """Per sequence of the labels s (N, T) and its length, its runs as (first, end, state) (lists, on the CPU)."""
+    s_cpu, n = s.cpu(), lengths.cpu().tolist()
+    out = []
+    for i, length in enumerate(n):
+        row = s_cpu[i, :length]
+        starts = [0] + (torch.nonzero(row[1:] != row[:-1]).reshape(-1) + 1).tolist()
+        out.append(list(zip(starts, starts[1:] + [length], row[starts].tolist())))
+    return out
 
 
 def duration_phases(s: Tensor, min_duration: int) -> Tensor:
@@ -1797,11 +1809,9 @@ class _Run:
         None without a switch."""
         D = self.D
         spans: list[tuple[int, ...]] = []  # (seq, lo, hi, a, b, first c', last c', removed state or -1)
-        s_cpu, lengths = s.cpu(), self.lengths.cpu().tolist()
-        for i in range(self.N):
-            row = s_cpu[i, : lengths[i]]
-            starts = [0] + (torch.nonzero(row[1:] != row[:-1]).reshape(-1) + 1).tolist()
-            ends, values = starts[1:] + [lengths[i]], row[starts].tolist()
+        runs = _runs(s, self.lengths)
+        for i, run in enumerate(runs):
+            starts, ends, values = (list(x) for x in zip(*run))
             R = len(values)
             for r in range(R - 1):  # the switch between runs r and r + 1, moved by at most D
                 lo, hi, a, b, c = starts[r], ends[r + 1], values[r], values[r + 1], ends[r]
@@ -1817,7 +1827,7 @@ class _Run:
                     spans.append((i, lo, hi, values[r - 1], values[r + 1], max(lo + D, starts[r] - D),
                                   min(hi - D, ends[r] + D), values[r]))
         if self.blocks is not None:
-            spans += self._birth_spans(s_cpu, lengths, F.shape[-1])
+            spans += self._birth_spans(runs, F.shape[-1])
         if not spans:
             return None
         sp = torch.tensor(spans, dtype=torch.long, device=self.device)  # (W, 8)
@@ -1848,19 +1858,14 @@ class _Run:
         cand_f[p, seq] = used  # the states it keeps (and, after a birth, the state it gains)
         return cand, cand_f, seq, touched
 
-    def _birth_spans(self, s: Tensor, lengths: list[int], K: int) -> list[tuple[int, ...]]:
+    def _birth_spans(self, runs: list[list[tuple[int, int, int]]], K: int) -> list[tuple[int, ...]]:
         """Births of a switch for :meth:`_shifts` (block emission): in one sequence, a run of state a at least 2D
         long cut at any grid point leaving both parts D long, its end given to a state b that follows a in some
         sequence or to a new state, or its start to a state b that precedes a somewhere or to a new state, as spans
         (seq, lo, hi, first label, second label, first c', last c', -1). The new state is label K - 1, which the
-        labelling s must not use (a free column of F). The shift's moves and deaths only move or remove switches,
+        labelling must not use (a free column of F); ``runs`` as :func:`_runs`. The shift's moves and deaths only move or remove switches,
         and the Viterbi relabelling that proposes new ones places them under the direction emission's fields."""
         D, new = self.D, K - 1
-        runs = []
-        for i in range(self.N):
-            row = s[i, : lengths[i]]
-            starts = [0] + (torch.nonzero(row[1:] != row[:-1]).reshape(-1) + 1).tolist()
-            runs.append(list(zip(starts, starts[1:] + [lengths[i]], row[starts].tolist())))
         follows = {(a, b) for r in runs for (_, _, a), (_, _, b) in zip(r, r[1:])}
         spans = []
         for i, r in enumerate(runs):
