@@ -29,16 +29,18 @@ def test_block_means_are_the_means_of_the_samples_nearest_each_grid_point():
 
 
 def _written_out_evidence(xbar, sbar, var, zmid, valid, labels, straight, tol, spread, slope):
-    """log N(y; 0, Omega + X Lambda X^T) of one labelling (N, T), every column and covariance entry by loops."""
+    """log N(y; 0, Omega + X Lambda X^T) of one labelling (N, T), every column and covariance entry by loops;
+    ``slope`` one scale for every state or a list of one per state."""
     N, T, d = xbar.shape
     p = d + 1
     M = T - 1
     K = straight.shape[0]
+    slopes = list(slope) if isinstance(slope, (list, tuple)) else [slope] * K
     rows = [(i, j) for i in range(N) for j in range(M)]
     names, prior = [], {}
     for k in range(K):  # each state: shared direction and each sequence's turn; field and each sequence's offset
         for n, v in ([(f"b{k}", 1.0 / d)] + [(f"b{k}_{i}", spread**2) for i in range(N)]
-                     + [(f"B{k}_{a}", slope**2) for a in range(d)] + [(f"B{k}_{d}", 1.0)]
+                     + [(f"B{k}_{a}", slopes[k] ** 2) for a in range(d)] + [(f"B{k}_{d}", 1.0)]
                      + [(f"c{k}_{i}", spread**2) for i in range(N)]):
             names.append(n)
             prior[n] = v
@@ -96,6 +98,14 @@ def test_block_evidence_is_the_gaussian_of_its_written_out_model():
     for b in range(labels.shape[0]):
         ref = _written_out_evidence(xbar, sbar, var, zmid, valid, labels[b], straight[b], tol, spread, slope)
         assert float(mine[b]) == pytest.approx(ref, abs=1e-8)
+    # a slope scale per labelling and state (the profile over two scales of ``slope_scale_mix``)
+    scales = torch.tensor([[1.0, 3.0, 0.5], [2.0, 1.0, 7.0], [0.3, 4.0, 1.0], [5.0, 1.0, 2.0]], dtype=torch.float64)
+    mine = block_log_evidence(xbar, sbar, var, zmid, valid, labels, straight, tolerance=tol, spread=spread,
+                              slope_scale=scales)
+    for b in range(labels.shape[0]):
+        ref = _written_out_evidence(xbar, sbar, var, zmid, valid, labels[b], straight[b], tol, spread,
+                                    scales[b].tolist())
+        assert float(mine[b]) == pytest.approx(ref, abs=1e-8)
 
 
 def test_block_evidence_rejects_zero_or_nonfinite_block_variances():
@@ -151,8 +161,10 @@ def test_block_emission_finds_the_mild_corner_the_direction_emission_merges():
     assert all(abs(c - t) <= 0.03 * T for c, t in zip(cuts, truth)), (cuts, truth)
 
 
-@pytest.mark.parametrize("position_weight", [0.0, None], ids=["directions", "with_position"])
-def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkeypatch, position_weight):
+@pytest.mark.parametrize("position_weight,slope_scale_mix", [(0.0, 0.0), (None, 0.0), (None, 8.0)],
+                         ids=["directions", "with_position", "two_slope_scales"])
+def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkeypatch, position_weight,
+                                                                          slope_scale_mix):
     """With the block emission the map search ranks its shift (births of a switch among them, to a state the other
     demonstrations use there or to a new one) and reassignment candidates by the block evidence:
     the change of one sequence's share added to the others' (``_Run._block_deltas``) equals the difference of
@@ -164,9 +176,15 @@ def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkey
     from lfd_torch.segmentation.synthetic import multi_step_demos
 
     runs = capture_runs(monkeypatch)
-    syn = multi_step_demos(torch.Generator().manual_seed(0), n_demos=3, n_steps=3, dim=2, profile="constant")
+    if slope_scale_mix > 0:  # arcs, with a narrow and a wide slope scale: curved states at either
+        from lfd_torch.segmentation.synthetic import curved_steps
+
+        syn = curved_steps(torch.Generator().manual_seed(3), n_demos=2, dim=2, profile="constant")
+    else:
+        syn = multi_step_demos(torch.Generator().manual_seed(0), n_demos=3, n_steps=3, dim=2, profile="constant")
+    extra = {"slope_scale": 0.1, "slope_scale_mix": slope_scale_mix} if slope_scale_mix > 0 else {}
     seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), block_emission=True,
-                  position_weight=position_weight, n_iterations=10)
+                  position_weight=position_weight, n_iterations=10, **extra)
     run, res = runs[-1], seg.sampler
     s, F = res.states, res.features
     K = F.shape[-1]
@@ -180,29 +198,43 @@ def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkey
     N, T = s.shape
     onehot = torch.nn.functional.one_hot(s, K).to(run.dtype) * run.valid.unsqueeze(-1)
     age, w, _ = run._score_view(s[None])
-    profiled, straight, _ = run._block_profile(s[None], age, w.expand(1, -1), onehot.reshape(1, N * T, K))
-    straight = straight[0]
+    profiled, kind, _ = run._block_profile(s[None], age, w.expand(1, -1), onehot.reshape(1, N * T, K))
+    kind = kind[0]
+    straight = kind == 0
+    scale = {0: 1.0, 1: run.cfg.slope_scale, 2: slope_scale_mix}
 
-    def evidence(lab, st):
-        return block_log_evidence(*run.blocks, run.valid, lab, st, **run._block_options())
+    def evidence(lab, kd):
+        opts = {**run._block_options(), "slope_scale": torch.tensor(
+            [[scale[int(c)] for c in row] for row in kd], dtype=run.dtype)}
+        return block_log_evidence(*run.blocks, run.valid, lab, kd == 0, **opts)
 
     # the profile's evidence (its component switches scored by recomputing only the sequences that use the state)
-    # is the evidence of the components it returns
-    assert float(profiled[0]) == pytest.approx(float(evidence(s[None], straight[None])[0]), abs=1e-7)
-
-    def n_used(lab, k):
-        return (torch.nn.functional.one_hot(lab, k).bool() & run.valid.unsqueeze(-1)).flatten(-3, -2).any(-2).sum(-1)
+    # is the evidence of the components it returns (to rounding: shares are added and subtracted)
+    assert float(profiled[0]) == pytest.approx(float(evidence(s[None], kind[None])[0]), rel=1e-9, abs=1e-7)
+    # and no single state switched to another component raises the evidence plus the components' log prior
+    log_prior = torch.tensor([np.log(0.5)] + [np.log(0.25 if slope_scale_mix > 0 else 0.5)] * 2, dtype=run.dtype)
+    objective = float(profiled[0]) + float(log_prior[kind[s.unique()]].sum())
+    for j in s.unique().tolist():
+        for c in range(3 if slope_scale_mix > 0 else 2):
+            if c != int(kind[j]):
+                kd = kind.clone()
+                kd[j] = c
+                assert float(evidence(s[None], kd[None])[0]) + float(log_prior[kd[s.unique()]].sum()) <= objective
 
     def reference(cand, rows_seq, k):
         """block_log_evidence of every candidate minus the current one, components held (a new state, label k - 1,
-        that of the state it takes its samples from), plus log 1/2 per state gained."""
-        st = torch.cat([straight, torch.zeros(k - K, dtype=torch.bool)]).expand(cand.shape[0], k).clone()
+        that of the state it takes its samples from), plus the change of the used states' components' log prior."""
+        kd = torch.cat([kind, torch.ones(k - K, dtype=kind.dtype)]).expand(cand.shape[0], k).clone()
         rows = cand[torch.arange(cand.shape[0]), rows_seq]
         first = (rows == k - 1).to(torch.uint8).argmax(-1)
         if k > K:
-            st[:, k - 1] = straight[s[rows_seq, first]]
-        return (evidence(cand, st) - evidence(s[None], st[:1])
-                + (n_used(cand, k) - n_used(s[None], k)) * np.log(0.5))
+            kd[:, k - 1] = kind[s[rows_seq, first]]
+
+        def prior(lab, kk):  # sum over the used states of the log prior of their components
+            used = (torch.nn.functional.one_hot(lab, k).bool() & run.valid.unsqueeze(-1)).flatten(-3, -2).any(-2)
+            return (log_prior[kk] * used).sum(-1)
+
+        return evidence(cand, kd) - evidence(s[None], kd[:1]) + prior(cand, kd) - prior(s[None], kd[:1])
 
     Fp = torch.nn.functional.pad(F, (0, 1))  # the free column of the shift step: births of a new state
     cand_s, cand_f, seq, touched = run._shifts(s, Fp)

@@ -25,7 +25,8 @@ of one run of state k is the state's motion over ds_j plus the difference of the
 with e_j ~ N(0, var_j) the blocks' noise, b_ik and o_ik each demonstration's own small turn of the direction or
 offset of the field, N(0, omega^2) per axis (its corners are its own; omega = ``spread``), B_k the affine field on
 the midpoint regressors zbar_j = (z_j + z_(j+1)) / 2 under the field prior's scales (slope entries N(0, s^2), offset
-N(0, 1)) and eta_j the direction tolerance sigma_u of the curved states (a random walk of the position along the
+N(0, 1); s may differ per state, as the sampler's profile over two scales sets it) and eta_j the direction
+tolerance sigma_u of the curved states (a random walk of the position along the
 run). A straight state has no tolerance: it is a line. An increment across a switch belongs to neither state: the
 corner lies somewhere between the two grid points, so that increment is a free displacement, N(0, ds_j^2) per axis.
 Which of the two a state is, is an argument here; the sampler starts from the direction emission's spike-and-slab
@@ -151,7 +152,7 @@ class BlockTerms:
 
 
 def block_sequence_terms(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, valid: Tensor, labels: Tensor,
-                         straight: Tensor, *, tolerance: float, spread: float, slope_scale: float) -> BlockTerms:
+                         straight: Tensor, *, tolerance: float, spread: float, slope_scale: float | Tensor) -> BlockTerms:
     """Each sequence's share of :func:`block_log_evidence` (same arguments; the data may also carry a leading
     batch dimension (B, N, ...), e.g. one sequence of a different demonstration per labelling). ``slope_scale``
     belongs to the shared coefficients' prior, applied by :func:`combine_block_terms`; it is accepted here so that
@@ -238,27 +239,30 @@ def _tridiagonal_whiten(diag: Tensor, off: Tensor, Z: Tensor) -> Tensor:
     return 2.0 * torch.log(l).sum(0)
 
 
-def combine_block_terms(gram: Tensor, proj: Tensor, const: Tensor, *, slope_scale: float) -> Tensor:
+def combine_block_terms(gram: Tensor, proj: Tensor, const: Tensor, *, slope_scale: float | Tensor) -> Tensor:
     """(B,) the block evidence from the sequences' shares summed over them, gram (B, Qs, Qs), proj (B, Qs, d),
-    const (B,): the shared coefficients integrated out under their prior Lambda_s."""
+    const (B,): the shared coefficients integrated out under their prior Lambda_s. ``slope_scale``: s for every
+    state, or (B, K) one per labelling and state (a straight state's is unused: its field columns are empty)."""
     Qs, d = proj.shape[-2:]
     K = Qs // (d + 2)
-    prior_s = torch.tensor([1.0 / d] + [slope_scale**2] * d + [1.0], dtype=gram.dtype, device=gram.device).repeat(K)
-    chol_s = torch.linalg.cholesky(gram + torch.diag(1.0 / prior_s))
+    scale = torch.as_tensor(slope_scale, dtype=gram.dtype, device=gram.device).expand(gram.shape[0], K)
+    prior_s = torch.cat([torch.full_like(scale, 1.0 / d).unsqueeze(-1), (scale**2).unsqueeze(-1).expand(-1, K, d),
+                         torch.ones_like(scale).unsqueeze(-1)], -1).flatten(-2)  # (B, Qs)
+    chol_s = torch.linalg.cholesky(gram + torch.diag_embed(1.0 / prior_s))
     quad = (proj * torch.cholesky_solve(proj, chol_s)).sum((-2, -1))
-    logdet = 2.0 * torch.log(torch.diagonal(chol_s, dim1=-2, dim2=-1)).sum(-1) + torch.log(prior_s).sum()
+    logdet = 2.0 * torch.log(torch.diagonal(chol_s, dim1=-2, dim2=-1)).sum(-1) + torch.log(prior_s).sum(-1)
     return const + 0.5 * quad - 0.5 * d * logdet
 
 
 def block_log_evidence(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, valid: Tensor, labels: Tensor,
-                       straight: Tensor, *, tolerance: float, spread: float, slope_scale: float) -> Tensor:
+                       straight: Tensor, *, tolerance: float, spread: float, slope_scale: float | Tensor) -> Tensor:
     """(B,) log p(increments of the block means | labelling) (module docstring).
 
     Args:
         xbar: (N, T, d), sbar: (N, T), var: (N, T) block means, path lengths and noise variances (standardised).
         zmid: (N, M, p) midpoint regressors of the increments; valid: (N, T) bool.
         labels: (B, N, T) long states in [0, K); straight: (B, K) bool, the states scored as straight.
-        tolerance: sigma_u of the curved states; spread: omega; slope_scale: s.
+        tolerance: sigma_u of the curved states; spread: omega; slope_scale: s, or (B, K) one per state.
     """
     check_block_variances(var, valid)
     terms = block_sequence_terms(xbar, sbar, var, zmid, valid, labels, straight, tolerance=tolerance, spread=spread,

@@ -177,7 +177,11 @@ reliability Jacobian) by the Gaussian evidence of the increments of the block me
 with no tolerance (each demonstration its own small turn); a curved state is the affine field with the tolerance
 ``block_tolerance`` as a random walk of the position (each demonstration its own offset); an increment across a
 switch is a free displacement. Each state is straight or curved as the direction emission's spike-and-slab
-posterior says, then switched one state at a time while that raises the evidence (a profile over the components).
+posterior says, then switched one state at a time while that raises the evidence plus the components' log prior (a
+profile over the components). With ``slope_scale_mix`` s2 > 0 a curved state is curved at ``slope_scale`` or at s2
+(prior 1/4 each, straight 1/2), profiled the same way: the block evidence does not factor over the states (a
+demonstration's own coefficients and its blocks' shared noise couple them), so the equal mixture of the
+direction emission would be a sum over 2^K combinations.
 The chains sample the direction model, which only seeds the search and proposes its relabellings; the shift and
 reassignment moves rank their candidates by the block evidence itself (each candidate changes one sequence, whose
 share alone is recomputed, the components held at the current labelling's, :meth:`_Run._block_deltas`), where ranking
@@ -269,6 +273,7 @@ from lfd_torch.segmentation.dwell import (
 from lfd_torch.segmentation.blocks import (
     DEMO_SPREAD,
     BlockMeans,
+    BlockTerms,
     block_sequence_terms,
     check_block_variances,
     combine_block_terms,
@@ -426,7 +431,8 @@ class BetaProcessHMMSampler:
         slope_scale: prior standard deviation of a field's slope entries per radius of the data
             (:func:`~lfd_torch.segmentation.field.field_prior`).
         slope_scale_mix: s >= 0: in the collapsed score, the affine fields' slope prior is an equal mixture of the
-            scales ``slope_scale`` and s (module docstring, "Slope scale"); 0: ``slope_scale`` alone.
+            scales ``slope_scale`` and s (module docstring, "Slope scale"; with ``block_emission`` each curved
+            state's scale is profiled, "Block emission"); 0: ``slope_scale`` alone.
         rotation_weight: r in [0, 1): in the collapsed score (so ``selection="map"``) the affine slab is the mixture
             (1 - r) affine + r rigid rotation (module docstring, "Rotation fields"); 0: affine alone.
         robust_dof: nu of the Student-t direction emission (None: Gaussian), see :mod:`.field`.
@@ -666,6 +672,7 @@ class _Run:
         self.pos = self.obs.z[..., : self.d]  # (N, T, d) standardised positions
         self.pos_prior = niw_prior_from_data(self.pos[self.valid], covariance_scale=_POSITION_SCALE)
         self.loc = self.spread = None  # (C, K, d), (C, K, d, d) position Gaussians when tau > 0
+        self._deltas_base = None  # _block_deltas: the profile and shares of the labelling it last scored against
         self.blocks = None  # block emission (module docstring): xbar, sbar, var (N, T, .), zmid (N, T - 1, p)
         if cfg.block_emission:
             self.blocks = self._standardised_blocks(blocks)
@@ -765,50 +772,139 @@ class _Run:
         return xbar, sbar, var, zmid
 
     def _block_evidence(self, s: Tensor, age: Tensor | None, w: Tensor, onehot: Tensor) -> Tensor:
-        """(B,) the block emission of the labellings s (B, N, T) (:mod:`.blocks`), each state straight or curved:
-        from the direction emission's spike-and-slab choice, the component of one state at a time is switched while
-        that raises the evidence (a profile over the components, as the Student-t scales are profiled), plus log 1/2
-        per state (the prior of either component)."""
-        best, _, used = self._block_profile(s, age, w, onehot)
-        return best + used.sum(-1).to(best) * math.log(0.5)
+        """(B,) the block emission of the labellings s (B, N, T) (:mod:`.blocks`) with each state's component
+        profiled (:meth:`_block_profile`), plus the components' log prior (:meth:`_component_log_prior`)."""
+        best, kind, used = self._block_profile(s, age, w, onehot)
+        return best + self._component_log_prior(kind, used).sum(-1)
+
+    def _component_log_prior(self, kind: Tensor, used: Tensor) -> Tensor:
+        """(..., K) log prior of each used state's component ``kind`` (..., K) (0 straight, 1 curved, 2 curved at
+        ``slope_scale_mix``), 0 for unused states: 1/2 straight, 1/2 curved, with ``slope_scale_mix`` the curved
+        half split equally between the two slope scales."""
+        curved = math.log(0.25) if self.cfg.slope_scale_mix > 0 else math.log(0.5)
+        lp = torch.where(kind == 0, math.log(0.5), curved).to(self.dtype)
+        return torch.where(used, lp, torch.zeros_like(lp))
+
+    def _block_scales(self, kind: Tensor) -> Tensor:
+        """(..., K) each state's slope scale: ``slope_scale_mix`` for component 2, else ``slope_scale``."""
+        cfg = self.cfg
+        return torch.where(kind == 2, cfg.slope_scale_mix, cfg.slope_scale).to(self.dtype)
 
     def _block_profile(self, s: Tensor, age: Tensor | None, w: Tensor, onehot: Tensor
                        ) -> tuple[Tensor, Tensor, Tensor]:
         """The block evidence (B,) of :meth:`_block_evidence` without the components' prior, the (B, K) components
-        it profiles to (True: straight) and the (B, K) states in use."""
+        it profiles to (0 straight, 1 curved, 2 curved at ``slope_scale_mix``) and the (B, K) states in use.
+
+        From the direction emission's spike-and-slab choice (straight or curved at ``slope_scale``), each round
+        scores every used state switched to each other component on its own and keeps, per labelling, the switch
+        that raises the evidence plus the components' log prior the most (a profile over the components, as the
+        Student-t scales are profiled). A switch between straight and curved recomputes the shares of the
+        sequences that use the state; a switch of the slope scale alone changes the shared prior only."""
         stats, _ = self._field_terms(age, w, onehot)
         log_straight = field_mixture_evidence(self.score_prior, *stats, self.cfg.straight_weight,
                                               self.wide_score_prior, self.cfg.rotation_weight)[1]  # (B, K)
         used = stats[0] > 0  # (B, K)
         B, K = used.shape
         opts = self._block_options()
+        mix = self.cfg.slope_scale_mix > 0
         uses = (torch.nn.functional.one_hot(s, K).bool() & self.valid.unsqueeze(-1)).any(-2)  # (B, N, K)
-        straight = (log_straight > math.log(0.5)) & used
+        kind = torch.where((log_straight > math.log(0.5)) & used, 0, 1)
+        eye = torch.eye(K, dtype=torch.bool, device=s.device)
+        lp = self._component_log_prior(torch.arange(3, device=s.device), torch.ones(3, dtype=torch.bool,
+                                                                                    device=s.device))
+        N = s.shape[1]
+        best = s.new_zeros(B, dtype=self.dtype)
+        active = torch.arange(B, device=s.device)  # labellings whose components changed in the last round
         for r in range(_COMPONENT_ROUNDS):
-            base = block_sequence_terms(*self.blocks, self.valid, s, straight, **opts)
+            A = active.numel()
+            sa, ka, ua = s[active], kind[active], used[active]
+            # each state j flipped between straight and curved on its own: only the sequences that use j change;
+            # their shares and the current ones are computed in one call
+            b, j, n = torch.nonzero(uses[active].transpose(1, 2), as_tuple=True)  # (P,) (labelling, state, sequence)
+            trial = ka[b] == 0
+            trial[torch.arange(b.numel(), device=s.device), j] ^= True
+            both = self._sequence_terms(torch.cat([torch.arange(N, device=s.device).repeat(A), n]),
+                                        torch.cat([sa.flatten(0, 1), sa[b, n]]),
+                                        torch.cat([(ka == 0).repeat_interleave(N, 0), trial]))
+            base = BlockTerms(*(t[: A * N].view(A, N, *t.shape[2:]) for t in (both.gram, both.proj, both.const,
+                                                                              both.at)), both.columns)
+            new = both[A * N:]
             total = base.totals()
             if r == 0:
-                best = combine_block_terms(*total, slope_scale=opts["slope_scale"])
-            # every state j flipped on its own: only the sequences that use j change their share
-            b, j, n = torch.nonzero(uses.transpose(1, 2), as_tuple=True)  # (P,) each (labelling, state, sequence)
-            trial = straight[b].clone()
-            trial[torch.arange(b.numel(), device=s.device), j] ^= True
-            new = block_sequence_terms(*(t[n].unsqueeze(1) for t in self.blocks), self.valid[n].unsqueeze(1),
-                                       s[b, n].unsqueeze(1), trial, **opts)
+                best = combine_block_terms(*total, slope_scale=self._block_scales(ka))
             flat = b * K + j
             out = [tot.repeat_interleave(K, 0) for tot in total]
             new[:, 0].add_to(*out, flat)
             base[b, n].add_to(*out, flat, -1.0)
-            values = combine_block_terms(*out, slope_scale=opts["slope_scale"]).view(B, K)
-            values = torch.where(used, values, torch.full_like(values, -math.inf))
-            top, j = values.max(-1)
-            better = top > best + 1e-9
+
+            def scored(terms: list[Tensor], c: int) -> Tensor:
+                """(A, K) evidence with state j (row j) at component c, the others as they are."""
+                at = torch.where(eye, c, ka.unsqueeze(1))  # (A, K, K)
+                return combine_block_terms(*terms, slope_scale=self._block_scales(at).flatten(0, 1)).view(A, K)
+
+            flipped = scored(out, 1)  # to straight (the scale is then unused) or to curved at slope_scale
+            none = torch.full_like(flipped, -math.inf)
+            values = [torch.where(ka == 0, none, flipped), torch.where(ka == 0, flipped, none)]
+            if mix:
+                same = [tot.repeat_interleave(K, 0) for tot in total]
+                values[1] = torch.where(ka == 2, scored(same, 1), values[1])
+                values.append(torch.where(ka == 0, scored(out, 2), torch.where(ka == 1, scored(same, 2), none)))
+            change = lp[: len(values)] - lp[ka].unsqueeze(-1)  # (A, K, C) the prior's change
+            gain = torch.stack(values, -1) + change
+            gain = torch.where(ua.unsqueeze(-1), gain, torch.full_like(gain, -math.inf))
+            top, at = gain.flatten(1).max(-1)
+            better = top > best[active] + 1e-9
             if not bool(better.any()):
                 break
-            flips = torch.nn.functional.one_hot(j, K).bool() & better.unsqueeze(-1)
-            straight = straight ^ flips
-            best = torch.where(better, top, best)
-        return best, straight, used
+            C = gain.shape[-1]
+            j, c = at // C, at % C
+            best[active] = torch.where(better, top - change.flatten(1).gather(1, at[:, None])[:, 0], best[active])
+            kind[active] = torch.where(torch.nn.functional.one_hot(j, K).bool() & better.unsqueeze(-1),
+                                       c.unsqueeze(-1), ka)
+            active = active[better]
+        if mix:  # then the slope scales alone (the shares stay; only the shared prior changes), to convergence
+            both = self._sequence_terms(torch.arange(N, device=s.device).repeat(B), s.flatten(0, 1),
+                                        (kind == 0).repeat_interleave(N, 0))
+            total = BlockTerms(*(t.view(B, N, *t.shape[2:]) for t in (both.gram, both.proj, both.const, both.at)),
+                               both.columns).totals()
+            same = [tot.repeat_interleave(K, 0) for tot in total]
+            for _ in range(K):
+                at = (eye.unsqueeze(0) & (kind != 0).unsqueeze(1)) ^ (kind == 2).unsqueeze(1)  # (B, K, K) j rescaled
+                rescaled = combine_block_terms(*same, slope_scale=self._block_scales(
+                    torch.where(at, 2, 1)).flatten(0, 1)).view(B, K)
+                gain = torch.where(used & (kind != 0), rescaled, torch.full_like(rescaled, -math.inf))  # equal priors
+                top, j = gain.max(-1)
+                better = top > best + 1e-9
+                if not bool(better.any()):
+                    break
+                best = torch.where(better, top, best)
+                hit = torch.nn.functional.one_hot(j, K).bool() & better.unsqueeze(-1)
+                kind = torch.where(hit, 3 - kind, kind)  # 1 <-> 2
+        return best, kind, used
+
+    def _sequence_terms(self, seq: Tensor, rows: Tensor, straight: Tensor) -> BlockTerms:
+        """Shares (P, 1) of the block evidence (:func:`~.blocks.block_sequence_terms`) of sequences ``seq`` (P,)
+        labelled ``rows`` (P, T) with the states' components ``straight`` (P, K). A share depends on the labels only
+        through which of the sequence's increments share a state and that state's component, so rows equal up to
+        an order-keeping renaming of the states (the same sequence in candidates that differ elsewhere, or whose
+        labels a merge shifted) are computed once: each row is written with its used states' ranks, and the
+        distinct ones are scored."""
+        P, T = rows.shape
+        K = straight.shape[-1]
+        p = self.d + 1
+        valid = self.valid[seq]
+        uses = (torch.nn.functional.one_hot(rows, K).bool() & valid.unsqueeze(-1)).any(-2)  # (P, K)
+        R = max(int(uses.sum(-1).max()), 1)
+        order = torch.argsort((~uses).to(torch.uint8), dim=-1, stable=True)[:, :R]  # used states first, by index
+        rank = rows.new_zeros(P, K).scatter_(-1, order, torch.arange(R, device=rows.device).expand(P, R))
+        canon = torch.where(valid, torch.gather(rank, -1, rows), 0)
+        key = torch.cat([seq.unsqueeze(-1), canon, torch.gather(straight, -1, order).long()], -1)
+        key, inverse = torch.unique(key, dim=0, return_inverse=True)
+        u = key[:, 0]
+        terms = block_sequence_terms(*(t[u].unsqueeze(1) for t in self.blocks), self.valid[u].unsqueeze(1),
+                                     key[:, 1: T + 1].unsqueeze(1), key[:, T + 1:].bool(), **self._block_options())
+        at = (order.unsqueeze(-1) * (1 + p) + torch.arange(1 + p, device=rows.device)).view(P, 1, R * (1 + p))
+        return BlockTerms(terms.gram[inverse], terms.proj[inverse], terms.const[inverse], at, K * (1 + p))
 
     def _block_options(self) -> dict:
         return {"tolerance": self.cfg.block_tolerance, "spread": DEMO_SPREAD, "slope_scale": self.cfg.slope_scale}
@@ -822,36 +918,41 @@ class _Run:
         search confirms a move by the full score, which profiles the components anew."""
         N, T = s.shape
         valid = self.valid
-        onehot = torch.nn.functional.one_hot(s, K).to(self.dtype) * valid.unsqueeze(-1).to(self.dtype)
-        age, w, _ = self._score_view(s[None])
-        straight = self._block_profile(s[None], age, w.expand(1, -1), onehot.reshape(1, N * T, K))[1][0]  # (K,)
-        opts = self._block_options()
-        xbar, sbar, var, zmid = self.blocks
-        base = block_sequence_terms(xbar, sbar, var, zmid, valid, s[None], straight[None], **opts)
-        total = base.totals()  # (1, ...)
-        current = combine_block_terms(*total, slope_scale=opts["slope_scale"])  # (1,)
-        base = base[0]  # (N, ...)
-
-        def used(lab: Tensor) -> Tensor:
-            return (torch.nn.functional.one_hot(lab, K).bool() & valid.unsqueeze(-1)).flatten(-3, -2).any(-2).sum(-1)
+        cached = self._deltas_base
+        view = (K, self.rho, self.sigma, self.tau_white)  # the profile starts from the direction emission's choice
+        if cached is not None and cached[1] == view and torch.equal(cached[0], s):
+            kind, base, total, current, prior, uses = cached[2:]
+        else:  # the shift and reassignment moves score their candidates in chunks, each against the same s
+            onehot = torch.nn.functional.one_hot(s, K).to(self.dtype) * valid.unsqueeze(-1).to(self.dtype)
+            age, w, _ = self._score_view(s[None])
+            kind = self._block_profile(s[None], age, w.expand(1, -1), onehot.reshape(1, N * T, K))[1][0]  # (K,)
+            base = block_sequence_terms(*self.blocks, valid, s[None], kind[None] == 0, **self._block_options())
+            total = base.totals()  # (1, ...)
+            current = combine_block_terms(*total, slope_scale=self._block_scales(kind[None]))  # (1,)
+            base = base[0]  # (N, ...)
+            uses = (torch.nn.functional.one_hot(s, K).bool() & valid.unsqueeze(-1)).any(-2)  # (N, K)
+            prior = self._component_log_prior(kind, uses.any(0)).sum()
+            self._deltas_base = (s.clone(), view, kind, base, total, current, prior, uses)
+        others = uses.sum(0)  # (K,) sequences that use each state
 
         out = []
         for part in range(0, seq.numel(), _SHIFT_CHUNK):
             cs, sq = cand_s[part: part + _SHIFT_CHUNK], seq[part: part + _SHIFT_CHUNK]
             P = sq.numel()
-            st = straight.unsqueeze(0).expand(P, K).clone()
-            rows = cs[torch.arange(P, device=self.device), sq].unsqueeze(1)  # (P, 1, T)
+            kd = kind.unsqueeze(0).expand(P, K).clone()
+            rows = cs[torch.arange(P, device=self.device), sq]  # (P, T)
             if not bool((s == K - 1).any()):
-                first = (rows[:, 0] == K - 1).to(torch.uint8).argmax(-1)  # (P,) 0 where unused: any component
-                st[:, K - 1] = straight[s[sq, first]]
-            terms = block_sequence_terms(xbar[sq].unsqueeze(1), sbar[sq].unsqueeze(1), var[sq].unsqueeze(1),
-                                         zmid[sq].unsqueeze(1), valid[sq].unsqueeze(1), rows, st, **opts)
+                first = (rows == K - 1).to(torch.uint8).argmax(-1)  # (P,) 0 where unused: any component
+                kd[:, K - 1] = kind[s[sq, first]]
+            terms = self._sequence_terms(sq, rows, kd == 0)
             parts = [tot.expand(P, *tot.shape[1:]).clone() for tot in total]
-            rows = torch.arange(P, device=self.device)
-            terms[:, 0].add_to(*parts, rows)
-            base[sq].add_to(*parts, rows, -1.0)
-            ev = combine_block_terms(*parts, slope_scale=opts["slope_scale"])
-            out.append(ev - current + (used(cs) - used(s[None])).to(ev) * math.log(0.5))
+            at = torch.arange(P, device=self.device)
+            terms[:, 0].add_to(*parts, at)
+            base[sq].add_to(*parts, at, -1.0)
+            ev = combine_block_terms(*parts, slope_scale=self._block_scales(kd))
+            row_uses = (torch.nn.functional.one_hot(rows, K).bool() & valid[sq].unsqueeze(-1)).any(-2)  # (P, K)
+            used = (others - uses[sq].long() + row_uses.long()) > 0
+            out.append(ev - current + self._component_log_prior(kd, used).sum(-1) - prior)
         return torch.cat(out)
 
     def _field_evidence(self, age: Tensor | None, w: Tensor, onehot: Tensor) -> Tensor:

@@ -1048,7 +1048,8 @@ def segment(
             (experiments/segmentation_studies.md).
         slope_scale_mix: s >= 0: in the collapsed score (so ``selection="map"``) the affine fields' slope prior is an
             equal mixture of the scales ``slope_scale`` and s, so that a state may curve gently or tightly
-            (:mod:`.sampler`, "Slope scale"); 0: ``slope_scale`` alone.
+            (:mod:`.sampler`, "Slope scale"; with ``block_emission`` each curved state's scale is profiled,
+            "Block emission"); 0: ``slope_scale`` alone.
         rotation_weight: r in [0, 1): in the collapsed score the affine slab is the mixture (1 - r) affine + r
             rigid rotation, which fits a circular arc with fewer parameters and no merge better
             (:mod:`.sampler`, "Rotation fields"); 0: affine alone.
