@@ -297,6 +297,7 @@ __all__ = ["SamplerResult", "BetaProcessHMMSampler", "HYPERPARAMETER_RANGES", "c
 _NEG_INF = float("-inf")
 _LOOKAHEAD = 4  # map search: merges tried with a relabelling after them when no merge alone raises the score
 _SHIFT_CHUNK = 512  # map search: shift candidates scored per batch (memory ~ chunk x N T x 3)
+_BIRTH_FRACTIONS = (1 / 3, 1 / 2, 2 / 3)  # map search, shared births: where the runs next to a state are cut
 _POLISH_STEPS = 3  # map search: most shift moves that polish the best split (each ~0.1 s on 7 LASA demonstrations)
 _SETTLE_STEPS = 10  # map search: most relabellings that settle the best look-ahead merge (each ~10 ms on 7 LASA demos)
 _POSITION_SCALE = 0.05  # prior expected covariance of a state's positions / the data's variance, per axis
@@ -1860,11 +1861,88 @@ class _Run:
                             break
                     if bool(sc2 > score):
                         s, F, score, moved = s2, F2, sc2, True
+            if shifts and not moved and self.blocks is not None:
+                step = self._shared_birth_step(s, F, score, hyper, score_of)
+                if step is not None:
+                    (s, F, score), moved = step, True
             if not moved:
                 break
         field, noise = self._posterior_mean_fields(s, F.shape[-1])
         return {**snap, "states": s, "features": F, "field": field, "noise": noise, "joint": math.nan,
                 "collapsed": float(score)}
+
+    def _shared_births(self, s: Tensor, F: Tensor) -> list[tuple[Tensor, Tensor]]:
+        """Candidates of the shared-birth move of :meth:`_climb_to_mode`: for each state j, side (the runs that
+        follow j, or precede it) and fraction f in ``_BIRTH_FRACTIONS``, in every sequence each such run at least
+        2 D grid points long gives its first (following) or last (preceding) share f to one new state, owned by the
+        sequences that receive it (at least two). Only where those runs carry different states: the step that the
+        sequences share there is then carried by no one state, which no other move gives them (where the runs are one
+        state, the split move cuts them)."""
+        N, K = F.shape
+        D = int(self.D)
+        runs = _runs(s, self.lengths)
+        out = []
+        for j in range(K):
+            for after in (True, False):
+                for f in _BIRTH_FRACTIONS:
+                    s2, owners, cut_states = s.clone(), set(), set()
+                    for i, rr in enumerate(runs):
+                        for r, (_, _, state) in enumerate(rr):
+                            nb = r + 1 if after else r - 1
+                            if state != j or not 0 <= nb < len(rr) or rr[nb][1] - rr[nb][0] < 2 * D:
+                                continue
+                            a, e, other = rr[nb]
+                            cut_states.add(other)
+                            cut = min(max(a + round(f * (e - a)), a + D), e - D)
+                            if after:
+                                s2[i, a:cut] = K
+                            else:
+                                s2[i, cut:e] = K
+                            owners.add(i)
+                    if len(owners) >= 2 and len(cut_states) >= 2:
+                        F2 = torch.nn.functional.pad(F, (0, 1))
+                        F2[sorted(owners), K] = True
+                        out.append((s2, F2))
+        return out
+
+    def _shared_birth_step(self, s: Tensor, F: Tensor, score: Tensor, hyper: list[Tensor], score_of
+                           ) -> tuple[Tensor, Tensor, Tensor] | None:
+        """The shared-birth move of :meth:`_climb_to_mode` from (s, F) of collapsed score ``score``: the
+        candidates of :meth:`_shared_births` scored in one batch; the ``_LOOKAHEAD`` best are taken in order, each
+        kept when it raises the score, else followed by its best reassignment (:meth:`_reassignments`, ranked by
+        :meth:`_reassignment_scores`, scored in full), kept when that raises it; when none does, the best of all
+        these is polished by shift moves, as the best split is. The new (s, F, score) or None."""
+        cand = self._shared_births(s, F)
+        if not cand:
+            return None
+        sc = score_of(torch.stack([c[0] for c in cand]), torch.stack([c[1] for c in cand]))
+        tried = []
+        for b in torch.argsort(sc, descending=True)[:_LOOKAHEAD].tolist():
+            s2, F2 = _compact_columns(*cand[b])
+            tried.append((s2, F2, sc[b]))
+            if bool(sc[b] > score):
+                return tried[-1]
+            moves = self._reassignments(s2, F2)
+            if moves is None:
+                continue
+            ranked = self._reassignment_scores(s2, F2, *moves, sc[b], hyper)
+            r = int(torch.argmax(ranked))
+            if bool(ranked[r] > sc[b]):
+                s3, F3 = _compact_columns(moves[0][r], moves[1][r])
+                tried.append((s3, F3, score_of(s3[None], F3[None])[0]))
+                if bool(tried[-1][2] > score):
+                    return tried[-1]
+        # the best of them, its switches moved by shifts alone while they raise its score (the births cut at fixed
+        # fractions of the runs): kept if it ends above the current labelling
+        s2, F2, sc2 = max(tried, key=lambda t: float(t[2]))
+        for _ in range(_POLISH_STEPS):
+            step = self._shift_step(s2, F2, sc2, hyper, score_of)
+            if step is None:
+                break
+            s2, F2, sc2 = step
+            if bool(sc2 > score):
+                return s2, F2, sc2
+        return None
 
     def _settle(self, s: Tensor, F: Tensor, score: Tensor, hyper: list[Tensor], score_of
                 ) -> tuple[Tensor, Tensor, Tensor]:
