@@ -808,7 +808,6 @@ class _Run:
                                               self.wide_score_prior, self.cfg.rotation_weight)[1]  # (B, K)
         used = stats[0] > 0  # (B, K)
         B, K = used.shape
-        opts = self._block_options()
         mix = self.cfg.slope_scale_mix > 0
         uses = (torch.nn.functional.one_hot(s, K).bool() & self.valid.unsqueeze(-1)).any(-2)  # (B, N, K)
         kind = torch.where((log_straight > math.log(0.5)) & used, 0, 1)
