@@ -1116,9 +1116,54 @@ def test_map_search_batched_scores_equal_the_full_score_one_candidate_at_a_time(
         full = score(cand[0], cand[1])
         assert torch.allclose(fast, full, rtol=0, atol=1e-8), float((fast - full).abs().max())
         shifted = run._shifts(s_, F_)  # the shift move's scores, updated by the terms it touches
-        fast = run._shift_scores(s_, F_, *shifted, score(s_[None], F_[None])[0], hyper)
+        fast = run._shift_scores(s_, F_, *shifted[:4], score(s_[None], F_[None])[0], hyper)
         full = score(shifted[0], shifted[1])
         assert torch.allclose(fast, full, rtol=0, atol=1e-8), float((fast - full).abs().max())
+
+
+@pytest.mark.parametrize("block_emission", [False, True], ids=["directions", "blocks"])
+def test_shift_moves_with_disjoint_regions_compose(monkeypatch, block_emission):
+    """The shift step moves every improving switch whose region is disjoint from better ones at once
+    (``_Run._disjoint_shifts``): each candidate of ``_Run._shifts`` differs from the current labelling only inside
+    its region [lo, hi), so candidates of one sequence with disjoint regions compose, and the composition keeps every
+    run at least D grid points long (the semi-Markov minimum), on the returned labelling and on each of its splits.
+    The picks are best first and pairwise disjoint within a sequence, and a candidate overlapping a better pick is
+    left out."""
+    syn = synthetic(*MUTATION_CASE)
+    runs = capture_runs(monkeypatch)
+    options = dict(block_emission=True, position_weight=None, position_mixture=True) if block_emission else {}
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="map", **options)
+    run, res = runs[-1], seg.sampler
+    s0, F0 = res.states, res.features
+    labellings = [(s0, F0)] + [sampler_module._compact_columns(*c) for c in run._splits(s0, F0)]
+    gen = torch.Generator().manual_seed(1)
+    for s, F in labellings:
+        Fp = torch.nn.functional.pad(F, (0, 1)) if block_emission else F
+        cand_s, _, seq, _, region = run._shifts(s, Fp)
+        t = torch.arange(run.T)
+        inside = (t >= region[:, :1]) & (t < region[:, 1:])  # (P, T)
+        rows = cand_s[torch.arange(seq.numel()), seq]
+        assert not ((rows != s[seq]) & ~inside & run.valid[seq]).any()  # changes stay inside the region
+        sc = torch.rand(seq.numel(), generator=gen, dtype=torch.float64)
+        picks = run._disjoint_shifts(sc, seq, region, torch.tensor(0.25, dtype=torch.float64))
+        assert picks and all(float(sc[a]) >= float(sc[b]) for a, b in zip(picks, picks[1:]))
+        composed = s.clone()
+        for i in range(run.N):
+            mine = [b for b in picks if int(seq[b]) == i]
+            for a in mine:
+                for b in mine:
+                    if a != b:
+                        assert int(region[a, 1]) <= int(region[b, 0]) or int(region[b, 1]) <= int(region[a, 0])
+            for b in mine:
+                lo, hi = region[b].tolist()
+                composed[i, lo:hi] = cand_s[b, i, lo:hi]
+        left_out = [b for b in torch.nonzero(sc > 0.25).view(-1).tolist() if b not in picks]
+        for b in left_out:  # each overlaps a better pick of its sequence
+            assert any(int(seq[a]) == int(seq[b]) and float(sc[a]) > float(sc[b])
+                       and int(region[a, 0]) < int(region[b, 1]) and int(region[b, 0]) < int(region[a, 1])
+                       for a in picks)
+        for i, rr in enumerate(sampler_module._runs(composed, run.lengths)):
+            assert all(e - a >= run.D for a, e, _ in rr), (i, rr)
 
 
 @pytest.mark.parametrize("tolerance", [None, (0.9, 0.1, 0.02)], ids=["white", "correlated_tolerance"])

@@ -237,7 +237,7 @@ def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkey
         return evidence(cand, kd) - evidence(s[None], kd[:1]) + prior(cand, kd) - prior(s[None], kd[:1])
 
     Fp = torch.nn.functional.pad(F, (0, 1))  # the free column of the shift step: births of a new state
-    cand_s, cand_f, seq, touched = run._shifts(s, Fp)
+    cand_s, cand_f, seq, touched, region = run._shifts(s, Fp)
     assert (cand_s == K).flatten(1).any(1).any() and (cand_s[:, :, 1:] != cand_s[:, :, :-1]).sum((1, 2)).gt(
         (s[:, 1:] != s[:, :-1]).sum()).any()  # births among the candidates
     fast = run._block_deltas(s, cand_s, seq, K + 1)
