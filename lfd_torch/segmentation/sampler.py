@@ -943,14 +943,19 @@ class _Run:
         # a row's name: its key up to the components of the states it uses (those of unused slots do not count)
         n_used = uses.sum(-1).tolist()
         distinct: dict[bytes, int] = {}
-        inverse_rows = [distinct.setdefault(k[: T + 1 + r].tobytes(), len(distinct))
-                        for k, r in zip(key.cpu().numpy(), n_used)]
+        first: list[int] = []  # the first row of each distinct name
+        inverse_rows = []
+        for j, (k, r) in enumerate(zip(key.cpu().numpy(), n_used)):
+            name = k[: T + 1 + r].tobytes()
+            if name not in distinct:
+                distinct[name] = len(first)
+                first.append(j)
+            inverse_rows.append(distinct[name])
         names = list(distinct)
-        first = dict(zip(inverse_rows[::-1], range(P - 1, -1, -1)))  # distinct row -> its first candidate
-        key = key[torch.tensor([first[i] for i in range(len(names))], device=rows.device)]
+        key = key[torch.tensor(first, device=rows.device)]
         inverse = torch.tensor(inverse_rows, device=rows.device)
         U, q = key.shape[0], 1 + p
-        used = [n_used[first[i]] for i in range(U)]  # states each distinct row uses
+        used = [n_used[j] for j in first]  # states each distinct row uses
         bank = self._share_bank
         found = [bank.index.get(name) for name in names]  # (r, slot) of the rows scored before
         gram = key.new_zeros(U, R * q, R * q, dtype=self.dtype)
