@@ -1914,16 +1914,9 @@ class _Run:
                     # its score: kept if it ends above the current labelling (a split whose new switches the
                     # relabelling placed a few grid points off pays for that before the shifts recover it)
                     b = int(torch.argmax(torch.stack(scores)))
-                    s2, F2, sc2 = relabelled[0][b], relabelled[1][b], scores[b]
-                    for _ in range(_POLISH_STEPS):
-                        step = self._shift_step(s2, F2, sc2, hyper, score_of)
-                        if step is None:
-                            break
-                        s2, F2, sc2 = step
-                        if bool(sc2 > score):  # the ascent goes on from it with every move
-                            break
-                    if bool(sc2 > score):
-                        s, F, score, moved = s2, F2, sc2, True
+                    step = self._polish(relabelled[0][b], relabelled[1][b], scores[b], score, hyper, score_of)
+                    if step is not None:  # the ascent goes on from it with every move
+                        (s, F, score), moved = step, True
             if shifts and not moved and self.blocks is not None:
                 step = self._shared_birth_step(s, F, score, hyper, score_of)
                 if step is not None:
@@ -1997,14 +1990,20 @@ class _Run:
                     return tried[-1]
         # the best of them, its switches moved by shifts alone while they raise its score (the births cut at fixed
         # fractions of the runs): kept if it ends above the current labelling
-        s2, F2, sc2 = max(tried, key=lambda t: float(t[2]))
+        return self._polish(*max(tried, key=lambda t: float(t[2])), score, hyper, score_of)
+
+    def _polish(self, s: Tensor, F: Tensor, sc: Tensor, score: Tensor, hyper: list[Tensor], score_of
+                ) -> tuple[Tensor, Tensor, Tensor] | None:
+        """A candidate (s, F) of collapsed score ``sc`` below the current ``score``, its switches moved by shift
+        steps alone while they raise its score, at most ``_POLISH_STEPS``: the first (s, F, score) above ``score``,
+        or None."""
         for _ in range(_POLISH_STEPS):
-            step = self._shift_step(s2, F2, sc2, hyper, score_of)
+            step = self._shift_step(s, F, sc, hyper, score_of)
             if step is None:
-                break
-            s2, F2, sc2 = step
-            if bool(sc2 > score):
-                return s2, F2, sc2
+                return None
+            s, F, sc = step
+            if bool(sc > score):
+                return s, F, sc
         return None
 
     def _settle(self, s: Tensor, F: Tensor, score: Tensor, hyper: list[Tensor], score_of
@@ -2043,10 +2042,14 @@ class _Run:
         cand_s, cand_f, seq, touched, region = shifted
         sc = torch.cat([self._shift_scores(s, F, *part, score, hyper)
                         for part in zip(*(x.split(_SHIFT_CHUNK) for x in (cand_s, cand_f, seq, touched)))])
-        best = self._best_per_sequence(sc, seq, score)  # improving moves, best first
-        tries = [self._disjoint_shifts(sc, seq, region, score)]
-        tries += [pick for pick in ([best] if len(best) > 1 else []) + ([best[:1]] if best else [])
-                  if len(pick) < len(tries[0])]
+        picks = self._disjoint_shifts(sc, seq, region, score)  # best first
+        best, seen = [], set()  # each sequence's best: its first pick
+        for b in picks:
+            if int(seq[b]) not in seen:
+                seen.add(int(seq[b]))
+                best.append(b)
+        tries = [picks] + [pick for pick in ([best] if len(best) > 1 else []) + ([best[:1]] if best else [])
+                           if len(pick) < len(picks)]
         for pick in tries:
             if not pick:
                 continue
@@ -2188,21 +2191,6 @@ class _Run:
                 for b in sorted({x for x, b in follows if b == a and x != a and x != prv}) + [new]:
                     spans.append((i, lo, hi, b, a, lo + D, hi - D, -1))
         return spans
-
-    @staticmethod
-    def _best_per_sequence(sc: Tensor, seq: Tensor, score: Tensor) -> list[int]:
-        """Indices of the best candidate of every sequence among those scoring above ``score``, best first."""
-        up = torch.nonzero(sc > score).reshape(-1)
-        if up.numel() == 0:
-            return []
-        order = up[torch.argsort(sc[up], descending=True)].tolist()
-        seen: set[int] = set()
-        out = []
-        for b in order:
-            if int(seq[b]) not in seen:
-                seen.add(int(seq[b]))
-                out.append(b)
-        return out
 
     def _shift_scores(self, s: Tensor, F: Tensor, cand_s: Tensor, cand_f: Tensor, seq: Tensor, touched: Tensor,
                       score: Tensor, hyper: list[Tensor]) -> Tensor:
