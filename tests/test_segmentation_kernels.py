@@ -14,7 +14,7 @@ import torch
 from scipy import stats
 
 from lfd_torch.segmentation.features import ibp_log_prior, sample_ibp, shared_log_odds
-from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood, viterbi
+from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood, used_states, viterbi
 from lfd_torch.segmentation.transitions import (
     sample_transition_weights_posterior,
     transition_counts,
@@ -136,6 +136,23 @@ def test_transition_counts_respect_lengths():
     ref1 = torch.zeros(3, 3, dtype=F64)
     ref1[2, 1], ref1[1, 1] = 1, 1
     torch.testing.assert_close(c, torch.stack([ref0, ref1]))
+
+
+def test_used_states_matches_a_naive_loop():
+    """used_states: the states each row uses on its valid samples, against a loop over rows and samples (padding
+    labels, which may name any state, must not count; leading batch dims and a broadcast mask)."""
+    g = torch.Generator().manual_seed(3)
+    K = 6
+    labels = torch.randint(0, K, (4, 3, 9), generator=g)
+    valid = torch.rand(4, 3, 9, generator=g) > 0.4
+    expected = torch.zeros(4, 3, K, dtype=torch.bool)
+    for b, i, t in itertools.product(range(4), range(3), range(9)):
+        if valid[b, i, t]:
+            expected[b, i, labels[b, i, t]] = True
+    assert torch.equal(used_states(labels, valid, K), expected)
+    shared = valid[0]  # (3, 9) one mask for every batch element
+    assert torch.equal(used_states(labels, shared, K), used_states(labels, shared.expand(4, 3, 9), K))
+    assert not used_states(labels, torch.zeros(3, 9, dtype=torch.bool), K).any()
 
 
 def test_ibp_prior_predictive(generator):

@@ -58,6 +58,7 @@ import torch
 from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
+from lfd_torch.segmentation.states import used_states
 
 __all__ = ["BlockMeans", "BlockTerms", "block_means", "block_sequence_terms", "combine_block_terms",
            "block_log_evidence", "check_block_variances", "DEMO_SPREAD"]
@@ -186,7 +187,7 @@ def block_sequence_terms(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, 
     # Only the R states a sequence uses get slots (R the most any sequence of the batch uses), in the order of
     # ``order`` (B, N, R); the shares are scattered back to the K states' columns at the end.
     w = p + 3
-    uses = (torch.nn.functional.one_hot(labels, K).bool() & valid.unsqueeze(-1)).any(-2)  # (B, N, K)
+    uses = used_states(labels, valid, K)  # (B, N, K)
     R = max(int(uses.sum(-1).max()), 1)
     order = torch.argsort((~uses).to(torch.uint8), dim=-1, stable=True)[..., :R]  # used states first
     rank = labels.new_zeros(B, N, K)
@@ -227,20 +228,25 @@ def block_sequence_terms(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, 
 def _tridiagonal_whiten(diag: Tensor, off: Tensor, Z: Tensor) -> Tensor:
     """Overwrite Z (M, ..., Q) with L^-1 Z and return log|Omega| (...), for the tridiagonal Omega (M x M per
     batch element) of diagonal ``diag`` (M, ...) and off-diagonal ``off`` (M - 1, ...), L its Cholesky factor (lower
-    bidiagonal). A recurrence along the M increments, in place: O(M Q) where the dense factor and solve are
-    O(M^3 + M^2 Q); with LASA's M = 76 the loop is 3x faster than ``torch.linalg.cholesky`` and ``solve_triangular``
-    on the dense Omega (one-off timing, 32 x 7 sequences, 60 columns), and it needs no M x M matrix."""
+    bidiagonal: l_j on the diagonal, m_j = off_j / l_j below it). Two recurrences along the M increments, one
+    fused op per step each: the pivots l_j^2 = diag_j - off_{j-1}^2 / l_{j-1}^2, then, on Z scaled by 1 / l_j,
+    Z_j <- Z_j - (m_{j-1} / l_j) Z_{j-1}. O(M Q) where the dense factor and solve are O(M^3 + M^2 Q); with LASA's
+    M = 76 the loop is 3x faster than ``torch.linalg.cholesky`` and ``solve_triangular`` on the dense Omega (one-off
+    timing, 32 x 7 sequences, 60 columns), and it needs no M x M matrix. The steps are small ops, so their number
+    is what costs: the fused form takes a third of the ops of the plain one."""
     M = diag.shape[0]
-    l, m = torch.empty_like(diag), torch.empty_like(off)
-    l[0] = diag[0].sqrt()
+    piv = torch.empty_like(diag)
+    piv[0] = diag[0]
+    off2 = off * off
     for j in range(M - 1):
-        torch.div(off[j], l[j], out=m[j])
-        torch.sqrt(diag[j + 1] - m[j] * m[j], out=l[j + 1])
-    inv, m = l.reciprocal().unsqueeze(-1), m.unsqueeze(-1)
-    Z[0].mul_(inv[0])
+        torch.addcdiv(diag[j + 1], off2[j], piv[j], value=-1.0, out=piv[j + 1])
+    l = piv.sqrt()
+    inv = l.reciprocal()
+    gain = (-off * inv[:-1] * inv[1:]).unsqueeze(-1)  # -m_j / l_{j+1}
+    Z.mul_(inv.unsqueeze(-1))
     for j in range(M - 1):
-        Z[j + 1].addcmul_(m[j], Z[j], value=-1.0).mul_(inv[j + 1])
-    return 2.0 * torch.log(l).sum(0)
+        Z[j + 1].addcmul_(gain[j], Z[j])
+    return torch.log(piv).sum(0)
 
 
 def combine_block_terms(gram: Tensor, proj: Tensor, const: Tensor, *, slope_scale: float | Tensor) -> Tensor:

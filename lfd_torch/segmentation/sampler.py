@@ -279,7 +279,7 @@ from lfd_torch.segmentation.blocks import (
     combine_block_terms,
 )
 from lfd_torch.segmentation.features import ibp_log_prior, shared_log_odds, unique_feature_rate
-from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood, viterbi
+from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood, used_states, viterbi
 from lfd_torch.segmentation.transitions import (
     dirichlet_log_density_rows,
     dirichlet_multinomial_log_prob,
@@ -840,7 +840,7 @@ class _Run:
         used = stats[0] > 0  # (B, K)
         B, K = used.shape
         mix = self.cfg.slope_scale_mix > 0
-        uses = (torch.nn.functional.one_hot(s, K).bool() & self.valid.unsqueeze(-1)).any(-2)  # (B, N, K)
+        uses = used_states(s, self.valid, K)  # (B, N, K)
         kind = torch.where((log_straight > math.log(0.5)) & used, 0, 1)
         eye = torch.eye(K, dtype=torch.bool, device=s.device)
         lp = self._component_log_prior(torch.arange(3, device=s.device), torch.ones(3, dtype=torch.bool,
@@ -934,7 +934,7 @@ class _Run:
         K = straight.shape[-1]
         p = self.d + 1
         valid = self.valid[seq]
-        uses = (torch.nn.functional.one_hot(rows, K).bool() & valid.unsqueeze(-1)).any(-2)  # (P, K)
+        uses = used_states(rows, valid, K)  # (P, K)
         R = max(int(uses.sum(-1).max()), 1)
         order = torch.argsort((~uses).to(torch.uint8), dim=-1, stable=True)[:, :R]  # used states first, by index
         rank = rows.new_zeros(P, K).scatter_(-1, order, torch.arange(R, device=rows.device).expand(P, R))
@@ -1015,7 +1015,7 @@ class _Run:
             total = base.totals()  # (1, ...)
             current = combine_block_terms(*total, slope_scale=self._block_scales(kind[None]))  # (1,)
             base = base[0]  # (N, ...)
-            uses = (torch.nn.functional.one_hot(s, K).bool() & valid.unsqueeze(-1)).any(-2)  # (N, K)
+            uses = used_states(s, valid, K)  # (N, K)
             prior = self._component_log_prior(kind, uses.any(0)).sum()
             self._deltas_base = (s.clone(), view, kind, base, total, current, prior, uses)
         others = uses.sum(0)  # (K,) sequences that use each state
@@ -1035,7 +1035,7 @@ class _Run:
             terms[:, 0].add_to(*parts, at)
             base[sq].add_to(*parts, at, -1.0)
             ev = combine_block_terms(*parts, slope_scale=self._block_scales(kd))
-            row_uses = (torch.nn.functional.one_hot(rows, K).bool() & valid[sq].unsqueeze(-1)).any(-2)  # (P, K)
+            row_uses = used_states(rows, valid[sq], K)  # (P, K)
             used = (others - uses[sq].long() + row_uses.long()) > 0
             out.append(ev - current + self._component_log_prior(kd, used).sum(-1) - prior)
         return torch.cat(out)
@@ -2165,7 +2165,7 @@ class _Run:
         cand = s.unsqueeze(0).expand(P, -1, -1).clone()
         cand[p, seq] = rows
         K = F.shape[-1]
-        used = (torch.nn.functional.one_hot(rows, K).bool() & self.valid[seq].unsqueeze(-1)).any(1)  # (P, K)
+        used = used_states(rows, self.valid[seq], K)  # (P, K)
         cand_f = F.unsqueeze(0).expand(P, -1, -1).clone()
         cand_f[p, seq] = used  # the states it keeps (and, after a birth, the state it gains)
         return cand, cand_f, seq, touched, region
@@ -2228,7 +2228,7 @@ class _Run:
         one) with the runs of k in sequence i relabelled j; (P, N, T) labels, (P, N, K + 1) features (the last
         column is the new state's) and the moves' (P,) i, k, j."""
         N, K = F.shape
-        used = (torch.nn.functional.one_hot(s, K).to(torch.bool) & self.valid.unsqueeze(-1)).any(1)  # (N, K)
+        used = used_states(s, self.valid, K)  # (N, K)
         i, k, j = torch.nonzero(used.unsqueeze(-1).expand(N, K, K + 1), as_tuple=True)
         keep = j != k
         i, k, j = i[keep], k[keep], j[keep]
@@ -2347,7 +2347,7 @@ class _Run:
                           None if le_first is None else le_first.flatten(0, 1))
         init, P = expand_min_duration(initial_distribution(F, self.dtype), pi, D)
         s_new = (viterbi(le, init.flatten(0, 1), P.flatten(0, 1), lengths.reshape(-1)) // D).unflatten(0, (B, N))
-        used = (torch.nn.functional.one_hot(s_new, K).to(torch.bool) & self.valid.unsqueeze(-1)).any(2)  # (B, N, K)
+        used = used_states(s_new, self.valid, K)  # (B, N, K)
         out = [_compact_columns(s_new[b], used[b]) for b in range(B)]
         return [o_[0] for o_ in out], [o_[1] for o_ in out]
 

@@ -192,3 +192,11 @@ def viterbi(log_emission: Tensor, initial: Tensor, transition: Tensor, lengths: 
         cur = back[:, t].gather(1, cur.unsqueeze(1)).squeeze(1)
         out[:, t - 1] = cur
     return out
+
+
+def used_states(labels: Tensor, valid: Tensor, K: int) -> Tensor:
+    """(..., K) bool: which of the K states each row of ``labels`` (..., T) long uses on its ``valid`` (..., T)
+    samples (broadcast against labels). A scatter of the labels, O(T) per row where a one-hot is O(T K)."""
+    valid = valid.expand(labels.shape)
+    out = torch.zeros(*labels.shape[:-1], K + 1, dtype=torch.bool, device=labels.device)
+    return out.scatter_(-1, torch.where(valid, labels, K), True)[..., :K]
