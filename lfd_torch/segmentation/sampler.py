@@ -1828,15 +1828,6 @@ class _Run:
                 mode 1.3 nats below the 5 steps the other three reach, without it; 5 steps on 10 of 10 with it). The
                 cap bounds the time it adds where it fails (every sequence's best switch moves in one step; on 7
                 LASA demonstrations a step costs about 0.1 s);
-            joint shift (with ``shifts`` under the block emission, only when no shift raises the score,
-                :meth:`_joint_shift_step`): the switches between one ordered pair of states moved by the same offset
-                in every sequence that has them, all candidates (:meth:`_joint_shifts`) scored in full in one batch.
-                The boundary of a step the demonstrations share is one quantity of the model, but a shift moves it in
-                one sequence at a time, against the shared states' fields fitted to the others (benchmark family
-                scoop_const_3d, 4 demonstrations, case 4: the first switch 3-5 grid points late in all four; moving
-                it 3 points earlier in all of them raises the score by 29 nats, in any one alone lowers it by 1-12;
-                the search stopped there without the move). Only under the block emission, where it was measured
-                (experiments/segmentation_studies.md, "Joint shifts");
             shared birth (with ``shifts`` under the block emission, only when none of the above raises the score,
                 :meth:`_shared_birth_step`): where the runs that follow (or precede) one state carry different
                 states in different sequences, their first (last) third, half or two thirds given to one new state,
@@ -1908,10 +1899,6 @@ class _Run:
             while step is not None:  # shifts on while they raise the score, then every move again
                 (s, F, score), moved = step, True
                 step = self._shift_step(s, F, score, hyper, score_of)
-            if shifts and not moved and self.blocks is not None:  # one switch moved in every sequence at once
-                step = self._joint_shift_step(s, F, score, score_of)
-                if step is not None:
-                    (s, F, score), moved = step, True
             splits = self._splits(s, F) if not moved else []
             if splits:  # last resort: split one state, its runs cut in two halves, then relabel (the first of
                 # them, most used state first, that raises the score; relabelled and scored as one batch)
@@ -2080,48 +2067,6 @@ class _Run:
             if bool(sc2 > score):
                 return s2, F2, sc2
         return None
-
-    def _joint_shifts(self, s: Tensor) -> Tensor | None:
-        """The joint-shift candidates of :meth:`_climb_to_mode`: for every ordered pair of states (a, b) whose
-        switch a -> b occurs in at least two sequences and every offset delta = -2D..2D but 0, every such switch
-        of every sequence moved by delta grid points at once (the runs keep their order, states and features; each
-        keeps at least D points, or the candidate is dropped). (P, N, T) labels, or None. The offsets reach 2D, twice
-        the single shift's: the score along a joint offset need not rise step by step (benchmark family
-        scoop_const_3d, 4 demonstrations, case 2: -1 to -3 grid points lower it by 2-3 nats, -4 raises it by
-        4.5)."""
-        D = self.D
-        switches: dict[tuple[int, int], list[tuple[int, int]]] = {}  # (a, b) -> [(sequence, first point of b)]
-        runs = _runs(s, self.lengths)
-        for i, rl in enumerate(runs):
-            for (_, _, a), (t, _, b) in zip(rl, rl[1:]):
-                switches.setdefault((a, b), []).append((i, t))
-        cands = []
-        for (a, b), at in switches.items():
-            if len({i for i, _ in at}) < 2:
-                continue
-            for delta in [d for d in range(-2 * D, 2 * D + 1) if d != 0]:
-                moved = s.clone()
-                for i, t in at:
-                    if delta < 0:
-                        moved[i, t + delta: t] = b
-                    else:
-                        moved[i, t: t + delta] = a
-                ok = all(len(r) == len(q) and all(e - f >= D for f, e, _ in r)
-                         for r, q in zip(_runs(moved, self.lengths), runs))
-                if ok:
-                    cands.append(moved)
-        return torch.stack(cands) if cands else None
-
-    def _joint_shift_step(self, s: Tensor, F: Tensor, score: Tensor, score_of) -> tuple[Tensor, Tensor, Tensor] | None:
-        """The joint-shift move of :meth:`_climb_to_mode` from (s, F) of collapsed score ``score``: the candidates
-        of :meth:`_joint_shifts` scored in full in one batch, the best kept when it raises the score. The new (s,
-        F, score), or None."""
-        cand = self._joint_shifts(s)
-        if cand is None:
-            return None
-        sc = score_of(cand, F.unsqueeze(0).expand(cand.shape[0], -1, -1))
-        b = int(torch.argmax(sc))
-        return (cand[b], F, sc[b]) if bool(sc[b] > score) else None
 
     @staticmethod
     def _disjoint_shifts(sc: Tensor, seq: Tensor, region: Tensor, score: Tensor) -> list[int]:
