@@ -452,6 +452,14 @@ def test_dirichlet_multinomial_transitions_against_scipy(generator):
         coef = math.lgamma(n.sum() + 1) - sum(math.lgamma(v + 1) for v in n)
         ref += stats.dirichlet_multinomial.logpmf(n, a, int(n.sum())) - coef
     assert out == pytest.approx(ref, abs=1e-9)
+    # batched: per-element hyperparameters and features, each equal to its own scalar call
+    counts_b = torch.randint(0, 3, (3, K, K), generator=generator).to(F64)
+    feats_b = torch.rand(3, K, generator=generator) > 0.3
+    alphas, kappas = torch.tensor([0.5, 1.3, 4.0], dtype=F64), torch.tensor([0.0, 7.0, 2.5], dtype=F64)
+    batched = dirichlet_multinomial_log_prob(counts_b, feats_b, alphas.view(3, 1, 1), kappas.view(3, 1, 1))
+    for b in range(3):
+        single = dirichlet_multinomial_log_prob(counts_b[b], feats_b[b], float(alphas[b]), float(kappas[b]))
+        assert float(batched[b]) == pytest.approx(float(single), abs=1e-12)
 
 
 def test_viterbi_matches_brute_force_enumeration_with_padding():

@@ -168,9 +168,13 @@ def dirichlet_multinomial_log_prob(counts: Tensor, features: Tensor, alpha: floa
     block = f.unsqueeze(-1) * f.unsqueeze(-2)
     n = counts * block
     a = prior_shape(K, alpha, kappa, dtype=counts.dtype, device=counts.device) * block
-    safe = torch.where(block > 0, a, torch.ones_like(a))
+    # log Gamma(a_jk + n_jk) - log Gamma(a_jk) is 0 where n_jk = 0, which is most of the K^2 cells: evaluated only
+    # on the counted ones (lgamma over every cell was the bulk of this function's time on a batch of labellings)
+    hit = n > 0
+    cells = torch.zeros_like(n)
+    cells[hit] = torch.lgamma(a[hit] + n[hit]) - torch.lgamma(a[hit])
     rows = (torch.lgamma(a.sum(-1).clamp_min(1e-300)) - torch.lgamma((a + n).sum(-1).clamp_min(1e-300))
-            + ((torch.lgamma(safe + n) - torch.lgamma(safe)) * block).sum(-1))
+            + cells.sum(-1))
     return (rows * f).sum(-1)
 
 
