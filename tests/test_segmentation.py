@@ -141,6 +141,10 @@ def test_steps_are_maximal_runs_of_hmm_states(case):
 # ---------------------------------------------------------------------------------------------- 2. mutants
 MUTATION_CASE = ("constant", 2, 4, 3, 0)
 
+#: The direction emission, named: these tests are about its mechanisms (dwell, tolerance, straight states,
+#: the map search's moves on cases it was measured on), whatever ``segment``'s defaults are.
+DIRECTIONS = dict(block_emission=False, position_mixture=False)
+
 
 def collapsed_score(run, res: SamplerResult, s: torch.Tensor, F: torch.Tensor) -> float:
     """The sampler run's collapsed score of the labelling s (N, T) with features F (N, K) under the transition and
@@ -338,7 +342,8 @@ def test_demonstration_that_repeats_a_step_is_aligned_by_its_states():
     step, a later B2 step (of either copy: both alignments are longest common subsequences), C. Checked on 4 seeds."""
     failures = []
     for seed in range(4):
-        seg = segment(_detour_demos(seed, _DETOUR[[0, 1, 2, 3, 2, 3, 4]]), generator=torch.Generator().manual_seed(seed))
+        seg = segment(_detour_demos(seed, _DETOUR[[0, 1, 2, 3, 2, 3, 4]]), generator=torch.Generator().manual_seed(seed),
+                      **DIRECTIONS)
         route = list(seg.routes[0]) if seg.n_routes == 1 else []
         states = [int(seg.step_state[m]) for m in route]
         full = [seg.step_sequence(i) for i in range(3)]
@@ -1087,7 +1092,7 @@ def test_map_search_batched_scores_equal_the_full_score_one_candidate_at_a_time(
     a run, and with the demonstrations' own offsets (per-sequence statistics)."""
     syn = synthetic(*MUTATION_CASE)
     runs = capture_runs(monkeypatch)
-    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), selection="map",
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), **DIRECTIONS, selection="map",
                   position_weight=position_weight, straight_weight=straight_weight, dwell_cue=dwell_cue,
                   tolerance_correlation=0.0 if tolerance is None else None, demo_offset=demo_offset)
     run, res = runs[-1], seg.sampler
@@ -1214,10 +1219,10 @@ def test_map_search_shift_move_removes_a_run_its_fields_held_in_place(monkeypatc
 
     syn = FAMILIES["scoop_const_3d"](torch.Generator().manual_seed(data_seed("scoop_const_3d", 0)), 1)
     captured = capture_runs(monkeypatch)
-    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0))
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), **DIRECTIONS)
     run, res = captured[-1], seg.sampler
     monkeypatch.setattr(sampler_module._Run, "_shifts", lambda self, s, F: None)
-    without = segment(syn.demos, generator=torch.Generator().manual_seed(0))
+    without = segment(syn.demos, generator=torch.Generator().manual_seed(0), **DIRECTIONS)
     assert len(seg.switches(0)) == 1 and len(without.switches(0)) == 2, (seg.switches(0), without.switches(0))
     gap = (collapsed_score(run, res, res.states, res.features)
            - collapsed_score(run, res, without.sampler.states, without.sampler.features))
@@ -1237,7 +1242,8 @@ def test_map_search_polished_split_reaches_the_mode_the_split_alone_misses(monke
     steps = sampler_module._POLISH_STEPS
     monkeypatch.setattr(sampler_module, "_POLISH_STEPS", 0)
     runs = capture_runs(monkeypatch)
-    seg = segment(load_lasa("Multi_Models_1"), generator=torch.Generator().manual_seed(2), tolerance_correlation=None)
+    seg = segment(load_lasa("Multi_Models_1"), generator=torch.Generator().manual_seed(2), **DIRECTIONS,
+                  tolerance_correlation=None)
     run, res = runs[-1], seg.sampler
 
     def runs_of(states):
@@ -1304,10 +1310,10 @@ def test_map_search_settled_lookahead_merge_reaches_the_mode_one_relabelling_mis
 
     demos = load_lasa("Sshape")
     runs = capture_runs(monkeypatch)
-    seg = segment(demos, generator=torch.Generator().manual_seed(0))
+    seg = segment(demos, generator=torch.Generator().manual_seed(0), **DIRECTIONS)
     run, res = runs[-1], seg.sampler
     monkeypatch.setattr(sampler_module, "_SETTLE_STEPS", 0)
-    without = segment(demos, generator=torch.Generator().manual_seed(0))
+    without = segment(demos, generator=torch.Generator().manual_seed(0), **DIRECTIONS)
     assert [len(seg.step_sequence(i)) for i in range(7)] == [5] * 7
     assert [len(without.step_sequence(i)) for i in range(7)] == [6] * 7
     gap = (collapsed_score(run, res, res.states, res.features)
@@ -1327,9 +1333,9 @@ def test_learned_tolerance_finds_the_mild_corner_the_white_tolerance_merges(monk
     from lfd_torch.segmentation.synthetic import FAMILIES
 
     syn = FAMILIES["straight_const_3d"](torch.Generator().manual_seed(data_seed("straight_const_3d", 8)), 1)
-    white = segment(syn.demos, generator=torch.Generator().manual_seed(8))
+    white = segment(syn.demos, generator=torch.Generator().manual_seed(8), **DIRECTIONS)
     captured = capture_runs(monkeypatch)
-    learned = segment(syn.demos, generator=torch.Generator().manual_seed(8), tolerance_correlation=None)
+    learned = segment(syn.demos, generator=torch.Generator().manual_seed(8), **DIRECTIONS, tolerance_correlation=None)
     run, res = captured[-1], learned.sampler
     true = syn.switch_times[0].tolist()
     n = int(syn.demos.lengths[0])
@@ -1368,7 +1374,7 @@ def test_straight_states_cut_single_demonstrations_of_straight_legs(monkeypatch)
 
     def found_all(seed, straight_weight):
         syn = FAMILIES["straight_const_2d"](torch.Generator().manual_seed(data_seed("straight_const_2d", seed)), 1)
-        seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), selection="map",
+        seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), **DIRECTIONS, selection="map",
                       position_weight=None, straight_weight=straight_weight, dwell_cue=False)  # fmt: skip
         found = seg.pieces[0][1:, 1].to(torch.float64)
         true = syn.switch_times[0].to(torch.float64)

@@ -300,18 +300,21 @@ def _scoop(seed: int):
 
 SCOOP_SEEDS = tuple(range(6))
 
+#: The direction emission, named: these tests are about its dwell term, whatever ``segment``'s defaults are.
+DIRECTIONS = dict(block_emission=False, position_mixture=False)
+
 
 @pytest.fixture(scope="module")
 def scoop_results():
-    """Every switch found on single scoop demonstrations with dwelling corners (default settings): without the
+    """Every switch found on single scoop demonstrations with dwelling corners (the direction emission): without the
     dwell term, with it, and with a data-blind dwell covariate (the real one permuted over the grid)."""
     out = {"directions": [], "dwell": [], "blind": [], "shift": []}
     real = segmentation_module.dwell_covariate
     for seed in SCOOP_SEEDS:
         syn = _scoop(seed)
-        without = segment(syn.demos, generator=torch.Generator().manual_seed(seed), dwell_cue=False)
+        without = segment(syn.demos, generator=torch.Generator().manual_seed(seed), **DIRECTIONS, dwell_cue=False)
         out["directions"].append(_every_switch(without, syn))
-        seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed))
+        seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), **DIRECTIONS)
         out["dwell"].append(_every_switch(seg, syn))
         out["shift"].append(seg.info["dwell"]["dwell_shift"])
 
@@ -322,7 +325,7 @@ def scoop_results():
 
         segmentation_module.dwell_covariate = blind
         try:
-            seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed))
+            seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), **DIRECTIONS)
         finally:
             segmentation_module.dwell_covariate = real
         out["blind"].append(_every_switch(seg, syn))
@@ -377,8 +380,8 @@ def test_pace_levels_find_the_corner_where_only_the_pace_changes(monkeypatch):
     from bench_segmentation import data_seed
 
     syn = FAMILIES["straight_const_3d"](torch.Generator().manual_seed(data_seed("straight_const_3d", 1)), 1)
-    default = segment(syn.demos, generator=torch.Generator().manual_seed(1))
-    paced = segment(syn.demos, generator=torch.Generator().manual_seed(1), dwell_pace=True)
+    default = segment(syn.demos, generator=torch.Generator().manual_seed(1), **DIRECTIONS)
+    paced = segment(syn.demos, generator=torch.Generator().manual_seed(1), **DIRECTIONS, dwell_pace=True)
     assert default.n_steps == 3 and not _every_switch(default, syn)
     assert paced.n_steps == 4 and _every_switch(paced, syn)
     with pytest.raises(InvalidArgumentError, match="dwell_pace"):
