@@ -2061,7 +2061,7 @@ class _Run:
             for i in {int(seq[b]) for b in pick}:  # padding repeats the last label; the features are the states
                 # the sequence uses now (a birth: the new one too)
                 s2[i] = torch.where(self.valid[i], s2[i], s2[i, int(self.lengths[i]) - 1])
-                F2[i] = torch.nn.functional.one_hot(s2[i][self.valid[i]], F.shape[-1]).bool().any(0)
+                F2[i] = used_states(s2[i], self.valid[i], F.shape[-1])
             s2, F2 = _compact_columns(s2, F2)
             sc2 = score_of(s2[None], F2[None])[0]
             if bool(sc2 > score):
@@ -2308,8 +2308,7 @@ class _Run:
         le = self._expand(le, F, self.lengths, None if dwell_ll is None else dwell_ll[0], le_first)
         init, P = expand_min_duration(initial_distribution(F, self.dtype), pi, D)
         s_new = viterbi(le, init, P, self.lengths) // D
-        used = torch.nn.functional.one_hot(s_new, K).to(torch.bool)
-        used = (used & self.valid.unsqueeze(-1)).any(1)  # (N, K)
+        used = used_states(s_new, self.valid, K)  # (N, K)
         return _compact_columns(s_new, used)
 
     def _viterbi_relabel_batch(self, s: Tensor, F: Tensor, alpha: float, kappa: float
