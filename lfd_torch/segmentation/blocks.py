@@ -61,7 +61,7 @@ from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
 from lfd_torch.segmentation.states import used_states
 
 __all__ = ["BlockMeans", "BlockTerms", "block_means", "block_sequence_terms", "combine_block_terms",
-           "block_log_evidence", "check_block_variances", "DEMO_SPREAD"]
+           "block_log_evidence", "check_block_variances", "state_slots", "DEMO_SPREAD"]
 
 #: omega, the prior scale (rad) of each demonstration's own turn of a straight state's direction: demonstrations put
 #: their corners a few percent of a leg apart, which turns a leg by a few degrees (the benchmark's jitter, 2 % of the
@@ -156,6 +156,17 @@ class BlockTerms:
         return out
 
 
+def state_slots(uses: Tensor) -> tuple[Tensor, Tensor]:
+    """The slots of the states each row uses (``uses`` (..., K) bool): ``order`` (..., R), the used states first,
+    by index (R the most any row uses, at least 1; a row using fewer is padded with unused states), and ``rank``
+    (..., K) long, each used state's slot (an unused state's entry is meaningless: 0 or a padding slot)."""
+    R = max(int(uses.sum(-1).max()), 1) if uses.numel() else 1
+    order = torch.argsort((~uses).to(torch.uint8), dim=-1, stable=True)[..., :R]
+    rank = torch.zeros(uses.shape, dtype=torch.long, device=uses.device)
+    rank.scatter_(-1, order, torch.arange(R, device=uses.device).expand(*uses.shape[:-1], R))
+    return order, rank
+
+
 def block_sequence_terms(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, valid: Tensor, labels: Tensor,
                          straight: Tensor, *, tolerance: float, spread: float, slope_scale: float | Tensor) -> BlockTerms:
     """Each sequence's share of :func:`block_log_evidence` (same arguments; the data may also carry a leading
@@ -187,11 +198,8 @@ def block_sequence_terms(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, 
     # Only the R states a sequence uses get slots (R the most any sequence of the batch uses), in the order of
     # ``order`` (B, N, R); the shares are scattered back to the K states' columns at the end.
     w = p + 3
-    uses = used_states(labels, valid, K)  # (B, N, K)
-    R = max(int(uses.sum(-1).max()), 1)
-    order = torch.argsort((~uses).to(torch.uint8), dim=-1, stable=True)[..., :R]  # used states first
-    rank = labels.new_zeros(B, N, K)
-    rank.scatter_(-1, order, torch.arange(R, device=labels.device).expand(B, N, R))
+    order, rank = state_slots(used_states(labels, valid, K))  # (B, N, R), (B, N, K)
+    R = order.shape[-1]
     slot = torch.gather(rank, -1, own)  # (B, N, M) each increment's slot
     st, cu = is_straight * ds, is_curved * ds  # (B, N, M)
     row = torch.cat([st.unsqueeze(-1), cu.unsqueeze(-1) * zmid, st.unsqueeze(-1), cu.unsqueeze(-1)], -1)

@@ -277,6 +277,7 @@ from lfd_torch.segmentation.blocks import (
     block_sequence_terms,
     check_block_variances,
     combine_block_terms,
+    state_slots,
 )
 from lfd_torch.segmentation.features import ibp_log_prior, shared_log_odds, unique_feature_rate
 from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood, used_states, viterbi
@@ -935,9 +936,8 @@ class _Run:
         p = self.d + 1
         valid = self.valid[seq]
         uses = used_states(rows, valid, K)  # (P, K)
-        R = max(int(uses.sum(-1).max()), 1)
-        order = torch.argsort((~uses).to(torch.uint8), dim=-1, stable=True)[:, :R]  # used states first, by index
-        rank = rows.new_zeros(P, K).scatter_(-1, order, torch.arange(R, device=rows.device).expand(P, R))
+        order, rank = state_slots(uses)  # used states first, by index
+        R = order.shape[-1]
         canon = torch.where(valid, torch.gather(rank, -1, rows), 0)
         key = torch.cat([seq.unsqueeze(-1), canon, torch.gather(straight, -1, order).long()], -1)
         # a row's name: its key up to the components of the states it uses (those of unused slots do not count)
