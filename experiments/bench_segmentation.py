@@ -95,6 +95,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import inspect
 import json
 import logging
 import math
@@ -237,6 +238,18 @@ def detect_segment(syn: SyntheticSteps, seed: int, selection: str | None = None,
             options = {**options, "selection": selection}
         seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed), **options)
     return [switches_from_labels(lab) for lab in seg.labels], {"n_steps": seg.n_steps}
+
+
+def segment_settings(options: dict[str, Any]) -> dict[str, Any]:
+    """Every keyword of :func:`segment` (but ``generator``) as a call with ``options`` sets it: the signature's
+    defaults of this checkout overlaid by ``options``. Stored with a table, it says what the table measured even
+    after a default changes (``options`` alone are relative to the defaults of the day)."""
+    params = inspect.signature(segment).parameters
+    unknown = sorted(set(options) - set(params))
+    if unknown:
+        raise SystemExit(f"--segment-option: segment() has no keyword {', '.join(unknown)}")
+    out = {k: p.default for k, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY and k != "generator"}
+    return {**out, **options}
 
 
 def segment_options(pairs: list[str]) -> dict[str, Any]:
@@ -553,7 +566,8 @@ def main() -> None:
     if args.json:
         from lfd_torch.store import atomic_write, git_sha
 
-        result["provenance"] = {"git_sha": git_sha(), "methods": list(args.method), "segment_options": options}
+        result["provenance"] = {"git_sha": git_sha(), "methods": list(args.method), "segment_options": options,
+                                "segment_settings": segment_settings(options)}
         atomic_write(args.json, lambda p: p.write_text(json.dumps(result, indent=2)))
 
 

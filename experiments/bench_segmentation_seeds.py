@@ -43,7 +43,7 @@ from lfd_torch.data import load_lasa
 from lfd_torch.segmentation import segment
 from lfd_torch.segmentation.sampler import SELECTIONS
 from lfd_torch.segmentation.synthetic import FAMILIES, multi_step_demos
-from bench_segmentation import case_data, map_cases, segment_options
+from bench_segmentation import case_data, map_cases, segment_options, segment_settings
 
 #: The experiment config that defines the 3-D set (its ``synthetic_3d`` entry, arguments of ``multi_step_demos``).
 SEGMENT_LASA_CONF = Path(__file__).resolve().parents[1] / "conf" / "segment_lasa.yaml"
@@ -161,7 +161,9 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     options = segment_options(args.segment_option)
     torch.set_num_threads(1)
-    out = {"settings": {"seeds": args.seeds, "selection": args.selection, "options": options}, "shapes": {}}
+    settings = segment_settings({**options, "selection": args.selection})
+    out = {"settings": {"seeds": args.seeds, "selection": args.selection, "options": options,
+                        "segment_settings": settings}, "shapes": {}}
     if "synthetic" in args.parts:
         rows = synthetic_stability(args.families, args.n_demos, args.cases, args.seeds, args.selection, options,
                                    args.jobs)

@@ -42,7 +42,7 @@ means b is the better of the two under a learned smooth tolerance. The table in 
 and every case the default settings miss (``diagnose_tolerance_missed.json``):
 
     OMP_NUM_THREADS=1 .venv/bin/python experiments/diagnose_tolerance.py \
-        --missed results/tables/bench_segmentation_segment.json --json results/tables/diagnose_tolerance_missed.json
+        --missed results/tables/bench_segmentation_segment_directions.json --json results/tables/diagnose_tolerance_missed.json
 """
 
 from __future__ import annotations

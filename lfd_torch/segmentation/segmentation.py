@@ -1003,13 +1003,13 @@ def segment(
     rotation_weight: float = 0.0,
     robust_dof: float | None = 4.0,
     position_weight: float | None = None,
-    position_mixture: bool = False,
+    position_mixture: bool = True,
     straight_weight: float = 0.5,
     tolerance_correlation: float | None = 0.0,
     dwell_cue: bool = True,
     dwell_pace: bool = False,
     demo_offset: float = 0.0,
-    block_emission: bool = False,
+    block_emission: bool = True,
     block_tolerance: float = 0.1,
     noise_model: str = "ar1",
     feature_mass: float = 2.0,
@@ -1057,7 +1057,9 @@ def segment(
             minimum duration in grid samples, the default); 0: directions alone (:mod:`.sampler`, "Position").
         position_mixture: the position term as a mixture over space, each state's Gaussian times its occupancy
             of the sequence (integrated out), so that cutting a leg does not raise the positions' density
-            (:mod:`.sampler`, "Position"); acts through ``selection="map"``.
+            (:mod:`.sampler`, "Position"); acts through ``selection="map"``. On by default, with ``block_emission``
+            (the pair was measured together, experiments/segmentation_studies.md, "Block emission with positions as
+            a mixture over space"); off, the Gaussians reward cutting a long leg.
         straight_weight: prior probability that a state's field is straight (slope 0) in the collapsed score, in
             [0, 1); it acts through ``selection="map"`` (:mod:`.sampler`, "Straight states"); 0: every field affine.
         tolerance_correlation: rho in [0, 1), the correlation of consecutive deviations of a direction from its
@@ -1073,7 +1075,8 @@ def segment(
         block_emission: in the collapsed score (so ``selection="map"``) the states' motion is scored on the block
             means of the positions around the grid points (:mod:`.blocks`): a straight state is a line through
             them, with the lever arm of its length, a curved one an affine field with the direction tolerance.
-            Measured, not the default (experiments/segmentation_studies.md, "Block emission").
+            The default (with ``position_mixture``); False scores the least-squares directions alone, the earlier
+            default (``block_emission=False, position_mixture=False``; README, "Segmentation").
         block_tolerance: with ``block_emission``, the curved states' direction tolerance sigma_u (rad), a random
             walk of the position along a run (:mod:`.blocks`).
         demo_offset: v >= 0: in the collapsed score (so ``selection="map"``) every demonstration adds its own offset
