@@ -192,9 +192,12 @@ or start given to a state that follows or precedes it in another demonstration, 
 relabelling, the only other source of new switches, places them under the direction emission's fields (LASA
 Multi_Models_1: demonstration 6 in one step on 3 of 10 seeds, 6-10 nats below the best two-step mode;
 two steps on 10 of 10 with births). The tempered
-position term is meant to be off with it (``position_weight=0``): with it on, the Gaussians' gain from cutting a
-long leg cut the scoop's transfer arc twice more on its four-demonstration case 2. Measured: row "block emission" of
-``experiments/segmentation_variants.py`` and ``experiments/segmentation_studies.md``, "Block emission".
+position term goes with it in its mixture form (``position_mixture``; :func:`~lfd_torch.segmentation.segment`'s
+default pair): as plain Gaussians the position term's gain from cutting a long leg cut the scoop's transfer arc twice
+more on its four-demonstration case 2, and without any position term LASA Multi_Models_4's two routes fall into one.
+Measured: rows "block emission" and "defaults" of ``experiments/segmentation_variants.py`` and
+``experiments/segmentation_studies.md``, "Block emission" and "Block emission with positions as a mixture over
+space".
 
 Dwell (``dwell``, :mod:`lfd_torch.segmentation.dwell`, the derivation there). The path-length grid hides how long
 the demonstrator spends somewhere, and a pause is where one subtask ends and the next begins. The model also
@@ -230,6 +233,7 @@ import math
 import numbers
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -940,20 +944,20 @@ class _Run:
         R = order.shape[-1]
         canon = torch.where(valid, torch.gather(rank, -1, rows), 0)
         key = torch.cat([seq.unsqueeze(-1), canon, torch.gather(straight, -1, order).long()], -1)
-        # a row's name: its key up to the components of the states it uses (those of unused slots do not count)
-        n_used = uses.sum(-1).tolist()
-        distinct: dict[bytes, int] = {}
-        first: list[int] = []  # the first row of each distinct name
-        inverse_rows = []
-        for j, (k, r) in enumerate(zip(key.cpu().numpy(), n_used)):
-            name = k[: T + 1 + r].tobytes()
-            if name not in distinct:
-                distinct[name] = len(first)
-                first.append(j)
-            inverse_rows.append(distinct[name])
-        names = list(distinct)
+        # a row's name: its key up to the components of the states it uses (those of unused slots do not count; the
+        # used count r follows from the ranks, so the key with those components zeroed names the row as well)
+        n_used_t = uses.sum(-1)
+        tail = torch.arange(R, device=rows.device) >= n_used_t.unsqueeze(-1)
+        named = torch.cat([key[:, : T + 1], key[:, T + 1:].masked_fill(tail, 0)], -1).cpu().numpy()
+        _, first_at, which = np.unique(named, axis=0, return_index=True, return_inverse=True)
+        by_first = np.argsort(first_at)  # the distinct rows in order of first appearance
+        first = first_at[by_first].tolist()
+        slot_of = np.empty_like(by_first)
+        slot_of[by_first] = np.arange(by_first.shape[0])
+        n_used = n_used_t.tolist()
+        names = [named[j, : T + 1 + n_used[j]].tobytes() for j in first]
         key = key[torch.tensor(first, device=rows.device)]
-        inverse = torch.tensor(inverse_rows, device=rows.device)
+        inverse = torch.from_numpy(slot_of[which.reshape(-1)]).to(rows.device)
         U, q = key.shape[0], 1 + p
         used = [n_used[j] for j in first]  # states each distinct row uses
         bank = self._share_bank
@@ -1271,6 +1275,9 @@ class _Run:
         c_conc = self.cfg.feature_concentration
         order = torch.randperm(K, generator=self.gen, device=self.device)
         order = order[self.F.any(1).any(0)[order]].tolist()  # slots some sequence owns
+        # IBP log odds log m - log(c + N - 1 - m) of owning a feature m other sequences own, m = 1..N - 1 (read at
+        # max(m, 1); entry 0, and entry 1 when N = 1, are never used by an eligible flip)
+        log_odds = shared_log_odds(torch.arange(max(N, 2), dtype=self.dtype).clamp_min(1), N, c_conc).numpy()
         for start in range(0, len(order), _BLOCK):
             block = order[start : start + _BLOCK]
             b = len(block)
@@ -1280,35 +1287,53 @@ class _Run:
             flip = torch.zeros(n_sub - 1, K, dtype=torch.bool, device=self.device)
             flip[:, block] = masks
             f_var = self.F.unsqueeze(2) ^ flip.view(1, 1, n_sub - 1, K)  # (C, N, n_sub - 1, K)
-            ll_var = self._marginal(
-                f_var.reshape(-1, K),
-                self.eta.unsqueeze(2).expand(C, N, n_sub - 1, K, K).reshape(-1, K, K),
-                self.loge.unsqueeze(2).expand(C, N, n_sub - 1, self.T, K).reshape(-1, self.T, K),
-                self.lengths.view(1, N, 1).expand(C, N, n_sub - 1).reshape(-1),
-                self._flat_dwell(n_sub - 1),
-            ).reshape(C, N, n_sub - 1)
+            # a feature no sequence of a chain owns stays unowned there through the scan (a flip needs another
+            # owner): the subsets that flip it are never read, and only the others are scored
+            live = self.F[:, :, block].any(1)  # (C, b)
+            need = ~(masks.unsqueeze(0) & ~live.unsqueeze(1)).any(-1)  # (C, n_sub - 1)
+            rows = need.unsqueeze(1).expand(C, N, n_sub - 1).reshape(-1)
+            ll_var = torch.full((C * N * (n_sub - 1),), _NEG_INF, dtype=self.dtype, device=self.device)
+            if bool(rows.any()):
+                dwell = self._flat_dwell(n_sub - 1)
+                ll_var[rows] = self._marginal(
+                    f_var.reshape(-1, K)[rows],
+                    self.eta.unsqueeze(2).expand(C, N, n_sub - 1, K, K).reshape(-1, K, K)[rows],
+                    self.loge.unsqueeze(2).expand(C, N, n_sub - 1, self.T, K).reshape(-1, self.T, K)[rows],
+                    self.lengths.view(1, N, 1).expand(C, N, n_sub - 1).reshape(-1)[rows],
+                    None if dwell is None else dwell[rows],
+                )
+            ll_var = ll_var.view(C, N, n_sub - 1)
             table = torch.cat([self.ll.unsqueeze(-1), ll_var], -1)  # (C, N, n_sub): index = subset bit mask
-            state = torch.zeros(C, N, dtype=torch.long, device=self.device)
             log_u = torch.log(self._rand(b, C, N))
-            n_own = self.F.sum(-1)  # (C, N)
-            for j, k in enumerate(block):
+            # the scan's decisions are on (C,) vectors: in NumPy on the host, where a tensor op's overhead would be
+            # most of their cost (the values are the tensors' own: the same decisions)
+            tab, lu = table.cpu().numpy(), log_u.cpu().numpy()
+            f_blk = self.F[:, :, block].cpu().numpy()  # (C, N, b), edited in place, written back after the scan
+            n_own = self.F.sum(-1).cpu().numpy()  # (C, N)
+            state = np.zeros((C, N), dtype=np.int64)
+            chains = np.arange(C)
+            n_acc = n_tried = 0
+            for j in range(b):
                 for i in torch.randperm(N, generator=self.gen, device=self.device).tolist():
-                    own = self.F[:, i, k]
-                    others = self.F[:, :, k].sum(1) - own.long()
+                    own = f_blk[:, i, j]
+                    others = f_blk[:, :, j].sum(1) - own
                     eligible = (others > 0) & ~(own & (n_own[:, i] == 1))
-                    log_odds = shared_log_odds(others.clamp_min(1).to(self.dtype), N, c_conc)
+                    odds = log_odds[np.maximum(others, 1)]
                     cur = state[:, i]
                     prop = cur ^ (1 << j)
-                    ll_cur = table[:, i].gather(-1, cur.unsqueeze(-1)).squeeze(-1)
-                    ll_new = table[:, i].gather(-1, prop.unsqueeze(-1)).squeeze(-1)
-                    log_a = ll_new - ll_cur + torch.where(own, -log_odds, log_odds)
-                    ok = eligible & (log_u[j, :, i] < log_a)
-                    self.accept["shared"][0] += int(ok.sum())
-                    self.accept["shared"][1] += int(eligible.sum())
-                    self.F[:, i, k] = own ^ ok
-                    state[:, i] = torch.where(ok, prop, cur)
-                    n_own[:, i] += torch.where(ok, torch.where(own, -1, 1), 0)
-            self.ll = table.gather(-1, state.unsqueeze(-1)).squeeze(-1)
+                    with np.errstate(invalid="ignore"):  # -inf - -inf where neither subset has a usable state
+                        log_a = tab[chains, i, prop] - tab[chains, i, cur] + np.where(own, -odds, odds)
+                    ok = eligible & (lu[j, :, i] < log_a)  # NaN compares false: not accepted, as with tensors
+                    n_acc += int(ok.sum())
+                    n_tried += int(eligible.sum())
+                    f_blk[:, i, j] = own ^ ok
+                    state[:, i] = np.where(ok, prop, cur)
+                    n_own[:, i] += np.where(ok, np.where(own, -1, 1), 0)
+            self.accept["shared"][0] += n_acc
+            self.accept["shared"][1] += n_tried
+            self.F[:, :, block] = torch.from_numpy(f_blk).to(self.device)
+            state_t = torch.from_numpy(state).to(self.device)
+            self.ll = table.gather(-1, state_t.unsqueeze(-1)).squeeze(-1)
 
     def _window_posterior(self, seq: Tensor, start: Tensor) -> tuple[FieldPrior, NIWPrior | None]:
         """Field posterior (and, when tau > 0, tempered position posterior) of the windows x^(seq)[start : start +
