@@ -944,20 +944,20 @@ class _Run:
         R = order.shape[-1]
         canon = torch.where(valid, torch.gather(rank, -1, rows), 0)
         key = torch.cat([seq.unsqueeze(-1), canon, torch.gather(straight, -1, order).long()], -1)
-        # a row's name: its key up to the components of the states it uses (those of unused slots do not count; the
-        # used count r follows from the ranks, so the key with those components zeroed names the row as well)
-        n_used_t = uses.sum(-1)
-        tail = torch.arange(R, device=rows.device) >= n_used_t.unsqueeze(-1)
-        named = torch.cat([key[:, : T + 1], key[:, T + 1:].masked_fill(tail, 0)], -1).cpu().numpy()
-        _, first_at, which = np.unique(named, axis=0, return_index=True, return_inverse=True)
-        by_first = np.argsort(first_at)  # the distinct rows in order of first appearance
-        first = first_at[by_first].tolist()
-        slot_of = np.empty_like(by_first)
-        slot_of[by_first] = np.arange(by_first.shape[0])
-        n_used = n_used_t.tolist()
-        names = [named[j, : T + 1 + n_used[j]].tobytes() for j in first]
+        # a row's name: its key up to the components of the states it uses (those of unused slots do not count)
+        n_used = uses.sum(-1).tolist()
+        distinct: dict[bytes, int] = {}
+        first: list[int] = []  # the first row of each distinct name
+        inverse_rows = []
+        for j, (k, r) in enumerate(zip(key.cpu().numpy(), n_used)):
+            name = k[: T + 1 + r].tobytes()
+            if name not in distinct:
+                distinct[name] = len(first)
+                first.append(j)
+            inverse_rows.append(distinct[name])
+        names = list(distinct)
         key = key[torch.tensor(first, device=rows.device)]
-        inverse = torch.from_numpy(slot_of[which.reshape(-1)]).to(rows.device)
+        inverse = torch.tensor(inverse_rows, device=rows.device)
         U, q = key.shape[0], 1 + p
         used = [n_used[j] for j in first]  # states each distinct row uses
         bank = self._share_bank
