@@ -21,6 +21,12 @@ the row's (a mismatch is an error, not a silent relabel), and reports
     commit         the code that made the synthetic table (each table records its own ``git_sha``)
 
 A dash is a benchmark that was not run for that setting.
+
+Options are relative to :func:`segment`'s defaults, which have changed: tables made before the switch to the block
+emission with positions as a mixture (``Variant.direction_defaults``) hold options relative to the direction
+emission, and the column shows what to pass today for the same setting (those options plus
+:data:`DIRECTION_DEFAULTS` where the row does not set them). Tables made since record every keyword as the call
+resolved it (``segment_settings``), which is checked against this checkout's signature with the row's options.
 """
 
 from __future__ import annotations
@@ -35,7 +41,7 @@ from typing import Any
 import torch
 
 from lfd_torch.segmentation.synthetic import FAMILIES, HELD_OUT_FAMILIES
-from bench_segmentation import summarize_synthetic
+from bench_segmentation import segment_settings, summarize_synthetic
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLES = ROOT / "results" / "tables"
@@ -44,21 +50,36 @@ TABLES = ROOT / "results" / "tables"
 ROW_BAR = 9
 
 
+#: segment()'s emission defaults before the block emission with positions as a mixture became the default: what a
+#: table made then (without ``segment_settings``) ran where its options do not say otherwise.
+DIRECTION_DEFAULTS: dict[str, Any] = {"block_emission": False, "position_mixture": False}
+
+
 @dataclass(frozen=True)
 class Variant:
-    """One setting of ``segment``: its options and the tables that measured it (file names under the tables dir)."""
+    """One setting of ``segment``: its options as its tables record them, the tables that measured it (file names
+    under the tables dir) and whether they were made under the direction emission's defaults."""
 
     label: str
     options: dict[str, Any] = field(default_factory=dict)
     synthetic: str | None = None
     held_out: str | None = None
     lasa: str | None = None
+    direction_defaults: bool = True
+
+    def current_options(self) -> dict[str, Any]:
+        """The options that give this setting with today's defaults."""
+        if not self.direction_defaults:
+            return dict(self.options)
+        return {**self.options, **{k: v for k, v in DIRECTION_DEFAULTS.items() if k not in self.options}}
 
 
 #: The measured settings, defaults first. Options as passed to ``--segment-option`` (and recorded in each table).
 VARIANTS: tuple[Variant, ...] = (
     Variant("defaults", {}, "bench_segmentation_segment.json", "bench_segmentation_held_out.json",
-            "bench_segmentation_seeds_default.json"),
+            "bench_segmentation_seeds_default.json", direction_defaults=False),
+    Variant("direction emission (the earlier defaults)", {}, "bench_segmentation_segment_directions.json",
+            "bench_segmentation_held_out_directions.json", "bench_segmentation_seeds_directions.json"),
     Variant("straight fields favoured", {"straight_weight": 0.99}, "bench_segmentation_segment_straight99.json"),
     Variant("vaguer slope prior", {"slope_scale": 3.0}, "bench_segmentation_segment_slope3.json",
             "bench_segmentation_held_out_slope3.json", "bench_segmentation_seeds_slope3.json"),
@@ -123,15 +144,31 @@ def _load(tables: Path, name: str) -> dict[str, Any]:
         raise TableMismatch(f"table {name!r} is not valid JSON: {exc}") from exc
 
 
-def _same_options(stored: dict[str, Any], wanted: dict[str, Any], name: str) -> None:
-    if stored != wanted:
-        raise TableMismatch(f"table {name!r} was made with options {stored}, its variant says {wanted}")
+def _same_options(stored: dict[str, Any], settings: dict[str, Any] | None, variant: Variant, name: str,
+                  **extra: Any) -> None:
+    """The table's recorded options are the variant's: its resolved ``settings`` when it has them (against this
+    checkout's signature with the variant's current options and ``extra``), else its options as recorded, for a
+    table of the direction defaults."""
+    if settings is not None:
+        wanted = json.loads(json.dumps(segment_settings({**variant.current_options(), **extra})))
+        if settings != wanted:
+            diff = {k: (settings.get(k), wanted.get(k)) for k in set(settings) | set(wanted)
+                    if settings.get(k) != wanted.get(k)}
+            raise TableMismatch(f"table {name!r} was made with other settings than its variant's (table, variant): "
+                                f"{diff}")
+        return
+    if not variant.direction_defaults:
+        raise TableMismatch(f"table {name!r} records no segment settings, and its variant is not of the direction "
+                            "defaults")
+    if stored != variant.options:
+        raise TableMismatch(f"table {name!r} was made with options {stored}, its variant says {variant.options}")
 
 
-def _segment_rows(table: dict[str, Any], name: str, families: dict[str, Any], options: dict[str, Any]) -> list[dict]:
+def _segment_rows(table: dict[str, Any], name: str, families: dict[str, Any], variant: Variant) -> list[dict]:
     """The ``segment`` rows of a synthetic table, checked to be 10 data seeds x {1, 4} demos of exactly ``families``
-    under the default benchmark settings and ``options``."""
-    _same_options(table.get("provenance", {}).get("segment_options", {}), options, name)
+    under the default benchmark settings and the variant's options."""
+    provenance = table.get("provenance", {})
+    _same_options(provenance.get("segment_options", {}), provenance.get("segment_settings"), variant, name)
     settings = table.get("synthetic_settings", {})
     for key in ("noise_correlation", "n_steps", "rate", "noise_scale"):
         if settings.get(key) is not None:
@@ -159,10 +196,10 @@ def rows_below_bar(rows: list[dict], bar: int = ROW_BAR) -> list[tuple[str, int,
     return [(f, n, k) for f, n, k in found if k < bar]
 
 
-def lasa_summary(table: dict[str, Any], name: str, options: dict[str, Any]) -> dict[str, Any]:
+def lasa_summary(table: dict[str, Any], name: str, variant: Variant) -> dict[str, Any]:
     """Fewest seeds with the modal count over all demonstrations, most route groupings, median / max seconds."""
     settings = table.get("settings", {})
-    _same_options(settings.get("options", {}), options, name)
+    _same_options(settings.get("options", {}), settings.get("segment_settings"), variant, name, selection="map")
     if settings.get("selection", "map") != "map" or "cases" in settings:
         raise TableMismatch(f"table {name!r} is not a LASA run of the default selection")
     shapes = table["shapes"]
@@ -174,18 +211,18 @@ def lasa_summary(table: dict[str, Any], name: str, options: dict[str, Any]) -> d
 
 def summarize(variant: Variant, tables: Path = TABLES) -> dict[str, Any]:
     """One row of the comparison (see the module docstring); None where a benchmark was not run."""
-    out: dict[str, Any] = {"label": variant.label, "options": variant.options}
+    out: dict[str, Any] = {"label": variant.label, "options": variant.current_options()}
     if variant.synthetic:
         table = _load(tables, variant.synthetic)
-        rows = _segment_rows(table, variant.synthetic, FAMILIES, variant.options)
+        rows = _segment_rows(table, variant.synthetic, FAMILIES, variant)
         shares = _shares(rows)
         out.update(every=shares["all"], every_1=shares[1], every_4=shares[4], below=rows_below_bar(rows),
                    commit=str(table["provenance"].get("git_sha", "?"))[:7])
     if variant.held_out:
-        rows = _segment_rows(_load(tables, variant.held_out), variant.held_out, HELD_OUT_FAMILIES, variant.options)
+        rows = _segment_rows(_load(tables, variant.held_out), variant.held_out, HELD_OUT_FAMILIES, variant)
         out["held_out"] = _shares(rows)["all"]
     if variant.lasa:
-        out["lasa"] = lasa_summary(_load(tables, variant.lasa), variant.lasa, variant.options)
+        out["lasa"] = lasa_summary(_load(tables, variant.lasa), variant.lasa, variant)
     return out
 
 

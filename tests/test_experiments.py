@@ -227,6 +227,29 @@ def test_segment_options_parse_numbers_flags_and_names():
     assert isinstance(got["extra_dof"], int)
 
 
+def test_segment_settings_are_the_signature_defaults_overlaid_by_the_options():
+    """What a benchmark table records as ``segment_settings``: every keyword of segment() but the generator, from
+    the signature (checked against inspect here by name and value, with the yaml config as a second reference for
+    the emission keys), the options on top; an unknown keyword is refused before any run."""
+    import inspect
+
+    import bench_segmentation as bench
+    from omegaconf import OmegaConf
+
+    from lfd_torch.segmentation import segment
+
+    params = inspect.signature(segment).parameters
+    got = bench.segment_settings({"slope_scale": 3.0, "block_emission": False})
+    assert set(got) == {k for k in params if k not in ("demos", "generator")}
+    assert got["slope_scale"] == 3.0 and got["block_emission"] is False
+    assert all(got[k] == params[k].default for k in got if k not in ("slope_scale", "block_emission"))
+    yaml = OmegaConf.load(ROOT / "conf/segmentation/bp_gm_hmm.yaml")
+    plain = bench.segment_settings({})
+    assert (plain["block_emission"], plain["position_mixture"]) == (yaml.block_emission, yaml.position_mixture)
+    with pytest.raises(SystemExit, match="no keyword bogus"):
+        bench.segment_settings({"bogus": 1})
+
+
 def test_correlated_noise_cases_share_the_paths_of_the_white_ones():
     """``synthetic_study(noise_correlation=rho)``: the same paths and switches as the white cases, other noise."""
     import bench_segmentation as bench

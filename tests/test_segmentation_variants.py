@@ -8,8 +8,9 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
 
+from bench_segmentation import segment_settings  # noqa: E402
 from segmentation_variants import (  # noqa: E402
-    TABLES, VARIANTS, TableMismatch, Variant, markdown, summarize,
+    DIRECTION_DEFAULTS, TABLES, VARIANTS, TableMismatch, Variant, markdown, summarize,
 )
 
 from lfd_torch.segmentation.synthetic import FAMILIES  # noqa: E402
@@ -68,6 +69,29 @@ def test_a_table_of_other_options_or_other_cases_is_refused(tmp_path):
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(TableMismatch, match="not valid JSON"):
         summarize(Variant("defaults", {}, "bad.json"), tmp_path)
+
+
+def test_tables_with_resolved_settings_are_checked_against_todays_signature(tmp_path):
+    """A table that records segment()'s resolved keywords is read for a variant whose options give exactly those
+    today; a table of the direction defaults (options only) is read for such a variant with the direction emission
+    pinned in its column, and refused for a variant of today's defaults."""
+    table = _synthetic_table({"slope_scale": 3.0})
+    table["provenance"]["segment_settings"] = segment_settings({"slope_scale": 3.0})
+    name = _write(tmp_path, "new.json", table)
+    s = summarize(Variant("vaguer", {"slope_scale": 3.0}, name, direction_defaults=False), tmp_path)
+    assert s["options"] == {"slope_scale": 3.0} and s["every"] == 1.0
+    with pytest.raises(TableMismatch, match="block_emission"):  # same recorded options, other resolved settings
+        summarize(Variant("vaguer", {"slope_scale": 3.0}, name, direction_defaults=True), tmp_path)
+    with pytest.raises(TableMismatch, match="slope_scale"):
+        summarize(Variant("vaguer", {"slope_scale": 2.0}, name, direction_defaults=False), tmp_path)
+    old = _write(tmp_path, "old.json", _synthetic_table({"slope_scale": 3.0}))
+    s = summarize(Variant("vaguer", {"slope_scale": 3.0}, old), tmp_path)
+    assert s["options"] == {"slope_scale": 3.0, **DIRECTION_DEFAULTS}
+    s = summarize(Variant("block", {"block_emission": True}, _write(tmp_path, "b.json", _synthetic_table(
+        {"block_emission": True}))), tmp_path)
+    assert s["options"] == {"block_emission": True, "position_mixture": False}
+    with pytest.raises(TableMismatch, match="records no segment settings"):
+        summarize(Variant("vaguer", {"slope_scale": 3.0}, old, direction_defaults=False), tmp_path)
 
 
 def test_every_registered_variant_reads_its_stored_tables():

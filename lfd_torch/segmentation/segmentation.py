@@ -16,7 +16,10 @@ after the sampler creates, removes, merges or moves a step across a state switch
        state switch is where the direction of motion stops being one smooth function of the position (a corner,
        a reversal, a cusp), not where a Gaussian would like to cut a long leg in two; with ``position_weight``
        the emission also carries a tempered Gaussian on the positions, which keeps distant pieces in different
-       states (:mod:`.sampler`, "Position");
+       states (:mod:`.sampler`, "Position"). By default (``block_emission``) the labelling returned is scored on
+       the block means of the positions instead of the local directions (:mod:`.blocks`): a straight state is a
+       line with the lever arm of its length, a curved one the affine field within a tolerance; and the positions
+       as a mixture over space (``position_mixture``), so a cut along a leg earns nothing from the Gaussians;
     2. a minimum duration: a run of a state lasts at least ``min_length`` samples. This is part of the HMM
        (explicit-duration states, :func:`~lfd_torch.segmentation.transitions.expand_min_duration`), not a
        post-processing rule, and it is what NOTES.md sec. 2 asks of short runs: a sample whose velocity straddles a
