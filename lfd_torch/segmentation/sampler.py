@@ -1277,7 +1277,8 @@ class _Run:
         order = order[self.F.any(1).any(0)[order]].tolist()  # slots some sequence owns
         # IBP log odds log m - log(c + N - 1 - m) of owning a feature m other sequences own, m = 1..N - 1 (read at
         # max(m, 1); entry 0, and entry 1 when N = 1, are never used by an eligible flip)
-        log_odds = shared_log_odds(torch.arange(max(N, 2), dtype=self.dtype).clamp_min(1), N, c_conc).numpy()
+        m_others = torch.arange(max(N, 2), dtype=self.dtype, device="cpu").clamp_min(1)  # read on the host
+        log_odds = shared_log_odds(m_others, N, c_conc).numpy()
         for start in range(0, len(order), _BLOCK):
             block = order[start : start + _BLOCK]
             b = len(block)
