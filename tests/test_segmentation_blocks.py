@@ -253,3 +253,41 @@ def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkey
     fast = run._block_deltas(s, cs, i, K + 1)
     ref = reference(cs, i, K + 1)
     assert (j == K).any() and torch.allclose(fast, ref, rtol=0, atol=1e-7), float((fast - ref).abs().max())
+
+
+def test_component_profile_is_a_local_maximum_where_three_states_start_wrong(monkeypatch):
+    """The map search scores a labelling with each state's component (straight / curved) profiled by one-state
+    switches from the direction emission's choice. On the scooping demonstration of seed 4 the direction emission's
+    labelling (5 steps, cut at the pause before the transport) starts with three states straight that the block
+    evidence wants curved; the profile must end where no single switch raises the evidence plus the components'
+    prior, checked here by the block evidence (``block_log_evidence``) of every one-state switch (a cap of two rounds
+    stopped 133 thousand nats short, which hid that labelling from the map search)."""
+    from lfd_torch.preprocess import Preprocess
+    from lfd_torch.robot import scooping_demonstration
+
+    runs = capture_runs(monkeypatch)
+    demos = Preprocess()(scooping_demonstration(4).demos())
+    segment(demos, generator=torch.Generator().manual_seed(4))  # the block emission's run scores the labelling
+    run = runs[-1]
+    seg = segment(demos, generator=torch.Generator().manual_seed(4), block_emission=False, position_mixture=False)
+    states = seg.sampler.states[None]
+    K = seg.sampler.features.shape[-1]
+    assert seg.n_steps == 5
+    N, T = run.N, run.T
+    onehot = (torch.nn.functional.one_hot(states, K).to(run.dtype) * run.valid.to(run.dtype).unsqueeze(-1))
+    age, w, _ = run._score_view(states)
+    best, kind, used = run._block_profile(states, age, w, onehot.reshape(1, N * T, K))
+    assert int((kind[0][used[0]] == 1).sum()) >= 3  # several states end curved (the case the cap failed)
+
+    def evidence(straight: torch.Tensor) -> float:
+        ev = block_log_evidence(*run.blocks, run.valid, states, straight[None], **run._block_options())
+        prior = run._component_log_prior(torch.where(straight, 0, 1), used[0]).sum()
+        return float(ev[0] + prior)
+
+    at_profile = kind[0] == 0
+    top = evidence(at_profile)
+    assert top == pytest.approx(float(best[0] + run._component_log_prior(kind[0], used[0]).sum()), abs=1e-6)
+    for j in torch.nonzero(used[0]).view(-1).tolist():
+        flipped = at_profile.clone()
+        flipped[j] = ~flipped[j]
+        assert evidence(flipped) <= top + 1e-6, f"switching state {j} alone raises the evidence"
