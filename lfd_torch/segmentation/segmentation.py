@@ -93,8 +93,8 @@ true corners met at speed. The dwell term (:mod:`.dwell`, on by default) lets th
 a switch instead: the demonstration's pauses are found as switches, but the learned charge for a switch at speed
 (a few nats) does not remove the within-stage cuts, and the count stays 5
 (``experiments/bench_scooping_segmentation.py``, results/tables/bench_scooping_segmentation_directions.json;
-these figures are the direction emission's: with the block emission, the default since, 4-5 steps and one stage
-switch missed on seed 4 of 10, results/tables/bench_scooping_segmentation.json). Measured as
+these figures are the direction emission's; with the block emission, the default since, 5 steps on every seed as
+well, results/tables/bench_scooping_segmentation.json). Measured as
 turns of the path (``--turns``: the angle between the chords over 1.25 % of the path length on either side), the
 cut in the U is a turn at speed of 40-53 degrees, in the range of the constant-speed corners of the synthetic
 benchmark (34-148) that the model is required to cut, and the cut over the cup a slow near reversal of 149-172
