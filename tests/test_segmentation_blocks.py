@@ -254,6 +254,31 @@ def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkey
     ref = reference(cs, i, K + 1)
     assert (j == K).any() and torch.allclose(fast, ref, rtol=0, atol=1e-7), float((fast - ref).abs().max())
 
+    # switched: the better of that and the same with the component of the state that gains the most samples in the
+    # candidate's sequence switched (straight <-> curved at slope_scale), every other state's held
+    matters = []
+    for cand, rows_seq in ((cand_s, seq), (cs, i)):
+        k = K + 1
+        fast = run._block_deltas(s, cand, rows_seq, k, switched=True)
+        held = reference(cand, rows_seq, k)
+        rows = cand[torch.arange(cand.shape[0]), rows_seq]
+        mask = run.valid[rows_seq].unsqueeze(-1)
+        count = lambda lab: (torch.nn.functional.one_hot(lab, k).bool() & mask).sum(1)
+        gainer = (count(rows) - count(s[rows_seq])).argmax(-1)
+        first = (rows == k - 1).to(torch.uint8).argmax(-1)
+        kd = torch.cat([kind, torch.ones(1, dtype=kind.dtype)]).expand(cand.shape[0], k).clone()
+        kd[:, k - 1] = kind[s[rows_seq, first]]
+        at = torch.arange(cand.shape[0])
+        kd[at, gainer] = torch.where(kd[at, gainer] == 0, 1, 0)
+        used = lambda lab: (torch.nn.functional.one_hot(lab, k).bool() & run.valid.unsqueeze(-1)).flatten(-3, -2).any(-2)
+        switched = torch.stack([evidence(cand[b:b + 1], kd[b:b + 1])[0] - evidence(s[None], kind[None])[0]
+                                + (log_prior[kd[b]] * used(cand[b:b + 1])[0]).sum()
+                                - (log_prior[kind] * used(s[None])[0, :K]).sum() for b in range(cand.shape[0])])
+        ref = torch.maximum(held, switched)
+        matters.append(bool((switched > held).any()))
+        assert torch.allclose(fast, ref, rtol=0, atol=1e-7), float((fast - ref).abs().max())
+    assert any(matters) or slope_scale_mix > 0  # on the straight legs some candidate is better switched
+
 
 def test_component_profile_is_a_local_maximum_where_three_states_start_wrong(monkeypatch):
     """The map search scores a labelling with each state's component (straight / curved) profiled by one-state
@@ -291,3 +316,46 @@ def test_component_profile_is_a_local_maximum_where_three_states_start_wrong(mon
         flipped = at_profile.clone()
         flipped[j] = ~flipped[j]
         assert evidence(flipped) <= top + 1e-6, f"switching state {j} alone raises the evidence"
+
+
+
+def test_shift_moves_are_scored_with_the_component_of_the_state_they_feed_switched(monkeypatch):
+    """Under the block emission the map search's shift candidates are first scored with every state's component
+    held; when none rises they are scored again with the component of the state each move feeds switched
+    (``_Run._block_deltas(switched=True)``). A constant-speed scoop (benchmark family scoop_const_3d, one
+    demonstration, case 7) labelled as the search returned it before: two runs, the approach carrying the hook's
+    first half as a curve. No candidate rises with the components held; the birth of a straight approach (a new
+    state) does once its component may switch, its switched score is its full collapsed score, and the shift step
+    takes it (3 steps, the truth's count)."""
+    import zlib
+
+    import lfd_torch.segmentation.sampler as sampler_module
+    from lfd_torch.segmentation.synthetic import scoop_steps
+
+    runs = capture_runs(monkeypatch)
+    seed = (zlib.crc32(b"scoop_const_3d") + 7919 * 7) % (2**31)  # bench_segmentation.data_seed
+    syn = scoop_steps(torch.Generator().manual_seed(seed), n_demos=1, profile="constant")
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(7))
+    run, res = runs[-1], seg.sampler
+    hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
+             for k in ("transition_concentration", "stickiness", "feature_mass")]
+
+    def score_of(lab, feat):
+        return run._collapsed_score(lab, feat, sampler_module.duration_phases(lab, run.D),
+                                    *(h.expand(lab.shape[0]) for h in hyper))
+
+    s = torch.zeros(1, run.T, dtype=torch.long)
+    s[0, 28:] = 1  # the switch the search returned before (grid point 28; the truth's are 20 and 33)
+    F = torch.ones(1, 2, dtype=torch.bool)
+    score = score_of(s[None], F[None])[0]
+    Fp = torch.nn.functional.pad(F, (0, 1))
+    cand_s, cand_f, seq, touched, _ = run._shifts(s, Fp)
+    held = run._shift_scores(s, Fp, cand_s, cand_f, seq, touched, score, hyper)
+    switched = run._shift_scores(s, Fp, cand_s, cand_f, seq, touched, score, hyper, switched=True)
+    assert float(held.max()) < float(score)
+    b = int(switched.argmax())
+    assert float(switched[b]) > float(score) + 5.0
+    assert float(switched[b]) == pytest.approx(float(score_of(cand_s[b:b + 1], cand_f[b:b + 1])[0]), abs=1e-6)
+    s2, _, sc2 = run._shift_step(s, F, score, hyper, score_of)
+    assert float(sc2) >= float(switched[b]) - 1e-6
+    assert len(sampler_module._runs(s2, run.lengths)[0]) == 3
