@@ -1004,19 +1004,22 @@ class _Run:
     def _block_deltas(self, s: Tensor, cand_s: Tensor, seq: Tensor, K: int, switched: bool = False) -> Tensor:
         """(P,) change of :meth:`_block_evidence` from the labelling s (N, T) to the candidates cand_s (P, N, T) over
         K states, each differing from s in its sequence ``seq`` alone, with every state keeping the component that s
-        profiles to, or with the component of the state that gains the most samples switched (straight <-> curved),
-        whichever scores higher; label K - 1, when s does not use it, is a new state and takes the component of the
-        state s has where a candidate first uses it (whose runs it receives). Only the changed sequence's share is
-        recomputed (:func:`~.blocks.block_sequence_terms`); the map search confirms a move by the full score, which
-        profiles the components anew.
+        profiles to (with ``switched``: the better of that and the same with the component of the state that gains
+        the most samples switched, straight <-> curved at ``slope_scale``); label K - 1, when s does not use it, is a
+        new state and takes the component of the state s has where a candidate first uses it (whose runs it
+        receives). Only the changed sequence's share is recomputed (:func:`~.blocks.block_sequence_terms`); the map
+        search confirms a move by the full score, which profiles the components anew.
 
-        Why the switched variant: a state's component is part of what a move changes. A straight state given the
-        first third of an arc is charged as a line, and a run that has lost its curved part is charged as a curve,
-        so a move that the full profile would score above the current labelling looked worse here and was never
-        confirmed (benchmark family scoop_const_3d, one demonstration, case 4: the hook's first switch 5 grid
-        points early scores 595.8 against 590.2 nats with the hook re-profiled as curved, 492.9 with it kept
-        straight). The gaining state is the one whose component the move can overturn; scoring every touched
-        state switched costs one more batch of shares per state."""
+        Why the switched variant: a state's component is part of what a move changes. A straight state given part of
+        an arc is charged as a line, a curved state that has lost its arc as a curve, and a new state born in a run
+        takes that run's component, so a move the full profile scores above the current labelling can look worse
+        with the components held and is never confirmed (benchmark family scoop_const_3d, one demonstration, case 7:
+        from two runs, the approach carrying the hook's first half as a curve, the birth of a straight approach
+        scores 508.1 nats in full and switched, 497.4 at best held, against 499.4 now;
+        ``tests/test_segmentation_blocks.py::test_shift_moves_are_scored_with_the_component_of_the_state_they_feed_switched``).
+        The state that gains the most samples is the one whose component a move overturns (a birth's new state, a
+        state whose switch moves into its neighbour); the variant costs a second batch of shares per candidate, so
+        the shift step asks for it only when no candidate rises with the components held."""
         N, T = s.shape
         valid = self.valid
         cached = self._deltas_base
@@ -1069,13 +1072,12 @@ class _Run:
             base[sq].add_to(*tot, at, -1.0)
             ev = (combine_block_terms(*tot, slope_scale=self._block_scales(kd))
                   + self._component_log_prior(kd, used).sum(-1))
-            # with ``switched``: the state that gains the most samples, its component switched
-            hot = lambda r: torch.nn.functional.one_hot(r, K).to(self.dtype).mul(valid[sq].unsqueeze(-1)).sum(1)
-            gain, gainer = (hot(rows) - hot(s[sq])).max(-1)  # (P,)
-            flip = torch.nonzero(gain > 0).view(-1)
+            if switched:  # the state that gains the most samples, its component switched
+                hot = lambda r: torch.nn.functional.one_hot(r, K).to(self.dtype).mul(valid[sq].unsqueeze(-1)).sum(1)
+                gain, gainer = (hot(rows) - hot(s[sq])).max(-1)  # (P,)
+                flip = torch.nonzero(gain > 0).view(-1)
             if switched and flip.numel():
-                F_ = flip.numel()
-                fa, g = torch.arange(F_, device=self.device), gainer[flip]
+                fa, g = torch.arange(flip.numel(), device=self.device), gainer[flip]
                 kf = kd[flip].clone()
                 kf[fa, g] = torch.where(kf[fa, g] == 0, 1, 0)
                 tf = [torch.cat(x) for x in zip(*(totals_with(k) for k in g.tolist()))]
