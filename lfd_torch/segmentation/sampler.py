@@ -1004,22 +1004,22 @@ class _Run:
     def _block_deltas(self, s: Tensor, cand_s: Tensor, seq: Tensor, K: int, switched: bool = False) -> Tensor:
         """(P,) change of :meth:`_block_evidence` from the labelling s (N, T) to the candidates cand_s (P, N, T) over
         K states, each differing from s in its sequence ``seq`` alone, with every state keeping the component that s
-        profiles to (with ``switched``: the better of that and the same with the component of the state that gains
-        the most samples switched, straight <-> curved at ``slope_scale``); label K - 1, when s does not use it, is a
-        new state and takes the component of the state s has where a candidate first uses it (whose runs it
-        receives). Only the changed sequence's share is recomputed (:func:`~.blocks.block_sequence_terms`); the map
-        search confirms a move by the full score, which profiles the components anew.
+        profiles to; label K - 1, when s does not use it, is a new state and takes the component of the state s has
+        where a candidate first uses it (whose runs it receives), or with ``switched`` the better of that and the
+        other one (straight <-> curved at ``slope_scale``). Only the changed sequence's share is recomputed
+        (:func:`~.blocks.block_sequence_terms`); the map search confirms a move by the full score, which profiles
+        the components anew.
 
-        Why the switched variant: a state's component is part of what a move changes. A straight state given part of
-        an arc is charged as a line, a curved state that has lost its arc as a curve, and a new state born in a run
-        takes that run's component, so a move the full profile scores above the current labelling can look worse
-        with the components held and is never confirmed (benchmark family scoop_const_3d, one demonstration, case 7:
-        from two runs, the approach carrying the hook's first half as a curve, the birth of a straight approach
-        scores 508.1 nats in full and switched, 497.4 at best held, against 499.4 now;
-        ``tests/test_segmentation_blocks.py::test_shift_moves_are_scored_with_the_component_of_the_state_they_feed_switched``).
-        The state that gains the most samples is the one whose component a move overturns (a birth's new state, a
-        state whose switch moves into its neighbour); the variant costs a second batch of shares per candidate, so
-        the shift step asks for it only when no candidate rises with the components held."""
+        Why ``switched``: a new state has no component of its own yet, and the one it inherits can make a birth look
+        worse than the full profile scores it, so that it is never confirmed (benchmark family scoop_const_3d, one
+        demonstration, case 7: from two runs, the approach carrying the hook's first half as a curve, the birth of a
+        straight approach scores 508.1 nats in full and switched, 497.4 at best inherited, against 499.4 now;
+        ``tests/test_segmentation_blocks.py::test_births_of_a_new_state_are_scored_with_its_component_free``).
+        The existing states keep theirs: switching the component of whichever state a move feeds as well found the
+        same labellings on the three single constant-speed scoops that changed (cases 0, 1, 7) and cost 7-33 % more
+        time on LASA Multi_Models_1-4 (`bench_segmentation_seeds.py`, medians, one-off, not stored). The
+        variant costs a second batch of shares for the births of a new state, so the shift step asks for it only
+        when no candidate rises without it."""
         N, T = s.shape
         valid = self.valid
         cached = self._deltas_base
@@ -1038,22 +1038,7 @@ class _Run:
             prior = self._component_log_prior(kind, uses.any(0)).sum()
             self._deltas_base = (s.clone(), view, kind, base, total, current, prior, uses)
         others = uses.sum(0)  # (K,) sequences that use each state
-
-        flipped_totals: dict[int, tuple[Tensor, Tensor, Tensor]] = {}  # state k switched: the totals of s
-
-        def totals_with(k: int) -> tuple[Tensor, Tensor, Tensor]:
-            if k not in flipped_totals:
-                users = torch.nonzero(uses[:, k]).view(-1)
-                parts = [tot.clone() for tot in total]
-                if users.numel():
-                    kk = kind.clone()
-                    kk[k] = 0 if int(kk[k]) else 1
-                    zero = torch.zeros(users.numel(), dtype=torch.long, device=self.device)
-                    self._sequence_terms(users, s[users], (kk == 0).expand(users.numel(), K))[:, 0].add_to(*parts,
-                                                                                                            zero)
-                    base[users].add_to(*parts, zero, -1.0)
-                flipped_totals[k] = tuple(parts)
-            return flipped_totals[k]
+        new_state = not bool((s == K - 1).any())
 
         out = []
         for part in range(0, seq.numel(), _SHIFT_CHUNK):
@@ -1062,7 +1047,7 @@ class _Run:
             at = torch.arange(P, device=self.device)
             kd = kind.unsqueeze(0).expand(P, K).clone()
             rows = cs[at, sq]  # (P, T)
-            if not bool((s == K - 1).any()):
+            if new_state:
                 first = (rows == K - 1).to(torch.uint8).argmax(-1)  # (P,) 0 where unused: any component
                 kd[:, K - 1] = kind[s[sq, first]]
             row_uses = used_states(rows, valid[sq], K)  # (P, K)
@@ -1072,20 +1057,18 @@ class _Run:
             base[sq].add_to(*tot, at, -1.0)
             ev = (combine_block_terms(*tot, slope_scale=self._block_scales(kd))
                   + self._component_log_prior(kd, used).sum(-1))
-            if switched:  # the state that gains the most samples, its component switched
-                hot = lambda r: torch.nn.functional.one_hot(r, K).to(self.dtype).mul(valid[sq].unsqueeze(-1)).sum(1)
-                gain, gainer = (hot(rows) - hot(s[sq])).max(-1)  # (P,)
-                flip = torch.nonzero(gain > 0).view(-1)
-            if switched and flip.numel():
-                fa, g = torch.arange(flip.numel(), device=self.device), gainer[flip]
-                kf = kd[flip].clone()
-                kf[fa, g] = torch.where(kf[fa, g] == 0, 1, 0)
-                tf = [torch.cat(x) for x in zip(*(totals_with(k) for k in g.tolist()))]
-                self._sequence_terms(sq[flip], rows[flip], kf == 0)[:, 0].add_to(*tf, fa)
-                self._sequence_terms(sq[flip], s[sq[flip]], kf == 0)[:, 0].add_to(*tf, fa, -1.0)
-                evf = (combine_block_terms(*tf, slope_scale=self._block_scales(kf))
-                       + self._component_log_prior(kf, used[flip]).sum(-1))
-                ev = ev.index_put((flip,), torch.maximum(ev[flip], evf))
+            if switched and new_state:  # the new state at the other component (only its sequence uses it)
+                flip = torch.nonzero((rows == K - 1).any(-1)).view(-1)
+                if flip.numel():
+                    fa = torch.arange(flip.numel(), device=self.device)
+                    kf = kd[flip].clone()
+                    kf[:, K - 1] = torch.where(kf[:, K - 1] == 0, 1, 0)
+                    tf = [t.expand(flip.numel(), *t.shape[1:]).clone() for t in total]
+                    self._sequence_terms(sq[flip], rows[flip], kf == 0)[:, 0].add_to(*tf, fa)
+                    base[sq[flip]].add_to(*tf, fa, -1.0)
+                    evf = (combine_block_terms(*tf, slope_scale=self._block_scales(kf))
+                           + self._component_log_prior(kf, used[flip]).sum(-1))
+                    ev = ev.index_put((flip,), torch.maximum(ev[flip], evf))
             out.append(ev - current - prior)
         return torch.cat(out)
 
@@ -1876,7 +1859,7 @@ class _Run:
                 current score plus the change of the terms they touch, :meth:`_shift_scores`; the improving moves
                 with disjoint regions taken at once, else the best of every sequence, else the best alone, confirmed
                 by the full score, :meth:`_shift_step`; under the block emission, when no candidate rises, they
-                are scored again with the component of the state each move feeds switched, :meth:`_block_deltas`;
+                are scored again with a new state's component free, :meth:`_block_deltas`;
                 shift steps are repeated while they raise the score before
                 the round starts again, since after a shift the cheaper moves rarely rise: LASA Multi_Models_3,
                 block emission, sampler seeds 0-3: the same labellings, 0.3-1.0 s less of 10-13 s, one-off
@@ -2120,7 +2103,7 @@ class _Run:
 
         sc = scores()
         if self.blocks is not None and not bool((sc > score).any()):
-            # then with the component of the state each move feeds switched (:meth:`_block_deltas`)
+            # then with the component of a new state free (:meth:`_block_deltas`)
             sc = scores(switched=True)  # the better of the two per candidate
         picks = self._disjoint_shifts(sc, seq, region, score)  # best first
         best, seen = [], set()  # each sequence's best: its first pick
@@ -2278,8 +2261,8 @@ class _Run:
         plus the change of the terms a move touches: the per-state terms (:meth:`_state_terms`) of the (P, 3)
         ``touched`` states (-1: none), the transitions and initial state of sequence ``seq``, the dwell term and
         the IBP prior. Equal to :meth:`_collapsed_score` of the candidates up to rounding, but for the components of
-        the block emission, held or (``switched``) held or switched for the state each move feeds
-        (:meth:`_block_deltas`), where the full score profiles them anew."""
+        the block emission, held (a new state's inherited, or with ``switched`` the better of both;
+        :meth:`_block_deltas`), where the full score profiles them anew."""
         N, T, K = self.N, self.T, F.shape[-1]
         P = seq.numel()
         valid = self.valid.reshape(-1)
