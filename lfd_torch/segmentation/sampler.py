@@ -2097,14 +2097,19 @@ class _Run:
             return None
         cand_s, cand_f, seq, touched, region = shifted
 
-        def scores(switched: bool = False) -> Tensor:
+        def scores(at: Tensor | None = None, switched: bool = False) -> Tensor:
+            parts = (cand_s, cand_f, seq, touched) if at is None else (cand_s[at], cand_f[at], seq[at], touched[at])
             return torch.cat([self._shift_scores(s, F, *part, score, hyper, switched)
-                              for part in zip(*(x.split(_SHIFT_CHUNK) for x in (cand_s, cand_f, seq, touched)))])
+                              for part in zip(*(x.split(_SHIFT_CHUNK) for x in parts))])
 
         sc = scores()
         if self.blocks is not None and not bool((sc > score).any()):
-            # then with the component of a new state free (:meth:`_block_deltas`)
-            sc = scores(switched=True)  # the better of the two per candidate
+            # then the births of a new state (the free column) with its component free (:meth:`_block_deltas`;
+            # the other candidates' scores do not change)
+            born = torch.nonzero((cand_s[torch.arange(seq.numel(), device=self.device), seq]
+                                  == F.shape[-1] - 1).any(-1)).view(-1)
+            if born.numel():
+                sc = sc.index_put((born,), scores(born, switched=True))  # the better of the two per birth
         picks = self._disjoint_shifts(sc, seq, region, score)  # best first
         best, seen = [], set()  # each sequence's best: its first pick
         for b in picks:
