@@ -1052,23 +1052,23 @@ class _Run:
                 kd[:, K - 1] = kind[s[sq, first]]
             row_uses = used_states(rows, valid[sq], K)  # (P, K)
             used = (others - uses[sq].long() + row_uses.long()) > 0
-            tot = [t.expand(P, *t.shape[1:]).clone() for t in total]
-            self._sequence_terms(sq, rows, kd == 0)[:, 0].add_to(*tot, at)
-            base[sq].add_to(*tot, at, -1.0)
-            ev = (combine_block_terms(*tot, slope_scale=self._block_scales(kd))
-                  + self._component_log_prior(kd, used).sum(-1))
+
+            def evidence(idx: Tensor, kk: Tensor) -> Tensor:
+                """Block evidence plus the components' prior of the candidates ``idx`` with components kk."""
+                tot = [t.expand(idx.numel(), *t.shape[1:]).clone() for t in total]
+                rank = torch.arange(idx.numel(), device=self.device)
+                self._sequence_terms(sq[idx], rows[idx], kk == 0)[:, 0].add_to(*tot, rank)
+                base[sq[idx]].add_to(*tot, rank, -1.0)
+                return (combine_block_terms(*tot, slope_scale=self._block_scales(kk))
+                        + self._component_log_prior(kk, used[idx]).sum(-1))
+
+            ev = evidence(at, kd)
             if switched and new_state:  # the new state at the other component (only its sequence uses it)
                 flip = torch.nonzero((rows == K - 1).any(-1)).view(-1)
                 if flip.numel():
-                    fa = torch.arange(flip.numel(), device=self.device)
                     kf = kd[flip].clone()
                     kf[:, K - 1] = torch.where(kf[:, K - 1] == 0, 1, 0)
-                    tf = [t.expand(flip.numel(), *t.shape[1:]).clone() for t in total]
-                    self._sequence_terms(sq[flip], rows[flip], kf == 0)[:, 0].add_to(*tf, fa)
-                    base[sq[flip]].add_to(*tf, fa, -1.0)
-                    evf = (combine_block_terms(*tf, slope_scale=self._block_scales(kf))
-                           + self._component_log_prior(kf, used[flip]).sum(-1))
-                    ev = ev.index_put((flip,), torch.maximum(ev[flip], evf))
+                    ev = ev.index_put((flip,), torch.maximum(ev[flip], evidence(flip, kf)))
             out.append(ev - current - prior)
         return torch.cat(out)
 
@@ -2315,8 +2315,7 @@ class _Run:
         return cand_s, cand_f, i, k, j
 
     def _reassignment_scores(self, s: Tensor, F: Tensor, cand_s: Tensor, cand_f: Tensor, i: Tensor, k: Tensor,
-                             j: Tensor, score: Tensor, hyper: list[Tensor],
-                             switched: bool = False) -> Tensor:
+                             j: Tensor, score: Tensor, hyper: list[Tensor]) -> Tensor:
         """(P,) collapsed scores of the reassignment candidates of :meth:`_reassignments`, as the current
         ``score`` of (s, F) plus the change of the terms a move touches: the per-state terms
         (:meth:`_state_terms`) of states k and j, the transitions and initial state of sequence i, and the IBP
@@ -2352,7 +2351,7 @@ class _Run:
                                 duration_phases(torch.cat([cand_s, s[None]]), self.D), self.pace_ratios)
             lp = lp + ev[:P] - ev[P:]
         if self.blocks is not None:
-            lp = lp + self._block_deltas(s, cand_s, i, K + 1, switched)
+            lp = lp + self._block_deltas(s, cand_s, i, K + 1)
         ibp = ibp_log_prior(cand_f, hyper[2].expand(P), self.cfg.feature_concentration).to(self.dtype)
         return lp + ibp - ibp_log_prior(F, hyper[2], self.cfg.feature_concentration).to(self.dtype)
 
