@@ -26,7 +26,9 @@ requires_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUD
 
 
 def capture_runs(monkeypatch) -> list:
-    """The sampler runs (``_Run``) that ``segment`` makes from here on, in order (their observations and scoring)."""
+    """The sampler runs (``_Run``) that ``segment`` makes from here on, in order (their observations and scoring).
+    The sampler runs in inference mode, so their state is made of inference tensors: a test that calls their methods
+    runs in inference mode too (``@torch.inference_mode()``)."""
     import lfd_torch.segmentation.sampler as sampler_module
 
     runs = []

@@ -344,12 +344,13 @@ def _rotation_map(d: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     """(d p, q) G with vec(B) = G theta (vec stacks the columns of B), theta = (w_ij for i < j, b), B = [W, b],
     W = sum_ij w_ij (e_i e_j^T - e_j e_i^T) skew-symmetric: q = d (d - 1) / 2 + d."""
     pairs = [(i, j) for i in range(d) for j in range(i + 1, d)]
-    G = torch.zeros(d * (d + 1), len(pairs) + d, dtype=dtype, device=device)
-    for k, (i, j) in enumerate(pairs):
-        G[j * d + i, k] = 1.0  # B[i, j] = w_ij
-        G[i * d + j, k] = -1.0  # B[j, i] = -w_ij
-    for i in range(d):
-        G[d * d + i, len(pairs) + i] = 1.0  # B[i, d] = b_i
+    with torch.inference_mode(False):  # cached: a normal tensor even when first built by the sampler (inference mode)
+        G = torch.zeros(d * (d + 1), len(pairs) + d, dtype=dtype, device=device)
+        for k, (i, j) in enumerate(pairs):
+            G[j * d + i, k] = 1.0  # B[i, j] = w_ij
+            G[i * d + j, k] = -1.0  # B[j, i] = -w_ij
+        for i in range(d):
+            G[d * d + i, len(pairs) + i] = 1.0  # B[i, d] = b_i
     return G
 
 
