@@ -50,7 +50,7 @@ results: $(STAMP)
 	rm -rf multirun/lasa_benchmark_paper
 	$(BIN)/python experiments/lasa_benchmark.py +experiment=lasa_benchmark_paper hydra.sweep.dir=multirun/lasa_benchmark_paper progress=false
 	$(BIN)/python experiments/report_benchmark.py multirun/lasa_benchmark_paper --name lasa_benchmark_paper
-	LFD_MNIST_DIR=$${LFD_MNIST_DIR:-../shared/data/mnist} $(BIN)/python experiments/mnist.py publish=true segmentation.block_emission=false segmentation.position_mixture=false
+	LFD_MNIST_DIR=$${LFD_MNIST_DIR:-../shared/data/mnist} $(BIN)/python experiments/mnist.py publish=true
 	$(BIN)/python experiments/scooping.py +experiment=scooping_publish progress=false
 	$(BIN)/python experiments/figures.py
 
