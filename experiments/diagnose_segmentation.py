@@ -32,18 +32,21 @@ from bench_segmentation import case_data, segment_options
 
 @contextlib.contextmanager
 def captured_runs():
-    """The sampler runs made inside the block (their observations and scoring are what the segmentation used)."""
-    runs, original = [], sampler_module._Run.sample
+    """The sampler runs made inside the block (their observations and scoring are what the segmentation used), made
+    outside inference mode so that their methods can be called after the block."""
+    runs, original, mode = [], sampler_module._Run.sample, sampler_module._INFERENCE_MODE
 
     def sample(self):
         runs.append(self)
         return original(self)
 
     sampler_module._Run.sample = sample
+    sampler_module._INFERENCE_MODE = False
     try:
         yield runs
     finally:
         sampler_module._Run.sample = original
+        sampler_module._INFERENCE_MODE = mode
 
 
 def case_labellings(family: str, seed: int, n_demos: int = 1, n_steps: int | None = None,

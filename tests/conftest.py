@@ -26,9 +26,8 @@ requires_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUD
 
 
 def capture_runs(monkeypatch) -> list:
-    """The sampler runs (``_Run``) that ``segment`` makes from here on, in order (their observations and scoring).
-    The sampler runs in inference mode, so their state is made of inference tensors: a test that calls their methods
-    runs in inference mode too (``@torch.inference_mode()``)."""
+    """The sampler runs (``_Run``) that ``segment`` makes from here on, in order (their observations and scoring),
+    made outside inference mode so that the test can call their methods."""
     import lfd_torch.segmentation.sampler as sampler_module
 
     runs = []
@@ -39,4 +38,5 @@ def capture_runs(monkeypatch) -> list:
         return original(self)
 
     monkeypatch.setattr(sampler_module._Run, "sample", capture)
+    monkeypatch.setattr(sampler_module, "_INFERENCE_MODE", False)
     return runs

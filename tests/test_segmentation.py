@@ -982,7 +982,6 @@ def test_duration_phases_count_samples_since_the_run_began_capped_at_d_minus_one
 @pytest.mark.parametrize(("position_weight", "straight_weight", "dwell_cue"),
                          [(0.0, 0.0, False), (None, 0.0, False), (None, 0.5, False), (None, 0.5, True)],
                          ids=["directions", "with_position", "with_straight_states", "with_dwell"])
-@torch.inference_mode()  # calls the captured run's methods, whose state is the sampler's (inference tensors)
 def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(monkeypatch, position_weight,
                                                                                straight_weight, dwell_cue):
     """selection="map": no merge of two states of the returned sample, no reassignment of one state's runs in
@@ -1097,7 +1096,6 @@ def test_map_selection_is_a_local_mode_of_the_collapsed_posterior_under_merges(m
                           (None, 0.5, True, (0.9, 0.1, 0.02), 16.0)],
                          ids=["directions", "with_position", "with_straight_states", "with_dwell",
                               "with_correlated_tolerance", "with_demo_offsets"])
-@torch.inference_mode()  # calls the captured run's methods, whose state is the sampler's (inference tensors)
 def test_map_search_batched_scores_equal_the_full_score_one_candidate_at_a_time(monkeypatch, position_weight,
                                                                                 straight_weight, dwell_cue, tolerance,
                                                                                 demo_offset):
@@ -1144,7 +1142,6 @@ def test_map_search_batched_scores_equal_the_full_score_one_candidate_at_a_time(
 
 
 @pytest.mark.parametrize("block_emission", [False, True], ids=["directions", "blocks"])
-@torch.inference_mode()  # calls the captured run's methods, whose state is the sampler's (inference tensors)
 def test_shift_moves_with_disjoint_regions_compose(monkeypatch, block_emission):
     """The shift step moves every improving switch whose region is disjoint from better ones at once
     (``_Run._disjoint_shifts``): each candidate of ``_Run._shifts`` differs from the current labelling only inside
@@ -1190,7 +1187,6 @@ def test_shift_moves_with_disjoint_regions_compose(monkeypatch, block_emission):
 
 
 @pytest.mark.parametrize("tolerance", [None, (0.9, 0.1, 0.02)], ids=["white", "correlated_tolerance"])
-@torch.inference_mode()  # calls the captured run's methods, whose state is the sampler's (inference tensors)
 def test_student_t_profile_scales_equal_a_loop_over_samples(monkeypatch, tolerance):
     """``_Run._profile_scales`` (every sample's squared Mahalanobis residual as one GEMM of its outer product
     [u_t, z_t][u_t, z_t]^T against each state's quadratic form) against a loop: per sample, the residual under
@@ -1225,7 +1221,6 @@ def test_student_t_profile_scales_equal_a_loop_over_samples(monkeypatch, toleran
             assert float(got[t]) == pytest.approx((nu + d - 2.0) / (nu + q), rel=1e-10, abs=1e-12), t
 
 
-@torch.inference_mode()  # calls the captured run's methods, whose state is the sampler's (inference tensors)
 def test_map_search_shift_move_removes_a_run_its_fields_held_in_place(monkeypatch):
     """The shift move of the map search (``_Run._shifts``: remove a run and place the switch between its neighbours
     anywhere in the three runs), on the case that motivated it (benchmark family scoop_const_3d, one
@@ -1249,7 +1244,6 @@ def test_map_search_shift_move_removes_a_run_its_fields_held_in_place(monkeypatc
     assert gap > 1.0, gap
 
 
-@torch.inference_mode()  # calls the captured run's methods, whose state is the sampler's (inference tensors)
 def test_map_search_polished_split_reaches_the_mode_the_split_alone_misses(monkeypatch):
     """The polished split of the map search (``_Run._climb_to_mode``: when no split raises the score, the best
     relabelled split, its switches moved by shift moves while they raise its score, kept when it ends above the
@@ -1282,7 +1276,6 @@ def test_map_search_polished_split_reaches_the_mode_the_split_alone_misses(monke
                                                                         seg.info["collapsed_log_prob"])
 
 
-@torch.inference_mode()  # calls the captured run's methods, whose state is the sampler's (inference tensors)
 def test_map_search_scores_merges_and_reassignments_only_where_the_relabelling_has_stopped(monkeypatch):
     """Order of the map search's moves (``_Run._climb_to_mode``): a round ends at the first move kept, so the costly
     merge and reassignment candidates are scored only on a labelling whose Viterbi relabelling does not raise the
@@ -1322,7 +1315,6 @@ def test_map_search_scores_merges_and_reassignments_only_where_the_relabelling_h
     assert float(original(run, res.states, res.features, *cand, score, hyper).max()) <= float(score) + 1e-9
 
 
-@torch.inference_mode()  # calls the captured run's methods, whose state is the sampler's (inference tensors)
 def test_map_search_settled_lookahead_merge_reaches_the_mode_one_relabelling_misses(monkeypatch):
     """The settled look-ahead of the map search (``_Run._settle``: in the chains' ascents, when no merge raises the
     score, alone or followed by one relabelling, the best of those relabelled on while that raises its score), on the
@@ -1344,7 +1336,6 @@ def test_map_search_settled_lookahead_merge_reaches_the_mode_one_relabelling_mis
     assert gap > 1.0, gap
 
 
-@torch.inference_mode()  # calls the captured run's methods, whose state is the sampler's (inference tensors)
 def test_learned_tolerance_finds_the_mild_corner_the_white_tolerance_merges(monkeypatch):
     """Property (issue 7, "Correlated tolerance" of the sampler docstring): on the benchmark case where the white
     default merges a 38-degree constant-speed corner (straight_const_3d, one demonstration, data case 8: 4 steps of

@@ -163,7 +163,6 @@ def test_block_emission_finds_the_mild_corner_the_direction_emission_merges():
 
 @pytest.mark.parametrize("position_weight,slope_scale_mix", [(0.0, 0.0), (None, 0.0), (None, 8.0)],
                          ids=["directions", "with_position", "two_slope_scales"])
-@torch.inference_mode()  # calls the captured run's methods, whose state is the sampler's (inference tensors)
 def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkeypatch, position_weight,
                                                                           slope_scale_mix):
     """With the block emission the map search ranks its shift (births of a switch among them, to a state the other
@@ -277,7 +276,6 @@ def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkey
     assert any(matters) or slope_scale_mix > 0  # on the straight legs some birth is better switched
 
 
-@torch.inference_mode()  # calls the captured run's methods, whose state is the sampler's (inference tensors)
 def test_component_profile_is_a_local_maximum_where_three_states_start_wrong(monkeypatch):
     """The map search scores a labelling with each state's component (straight / curved) profiled by one-state
     switches from the direction emission's choice. On the scooping demonstration of seed 4 the direction emission's
@@ -317,7 +315,6 @@ def test_component_profile_is_a_local_maximum_where_three_states_start_wrong(mon
 
 
 
-@torch.inference_mode()  # calls the captured run's methods, whose state is the sampler's (inference tensors)
 def test_births_of_a_new_state_are_scored_with_its_component_free(monkeypatch):
     """Under the block emission the map search's shift candidates are first scored with every state's component
     held (a new state's inherited from the run it is born in); when none rises they are scored again with a new

@@ -312,6 +312,10 @@ _SHARE_CACHE = 20_000  # block emission: distinct sequence shares kept (_sequenc
 # demonstration, seed 4), which hid the stage switch at its pause from the map search
 _COMPONENT_ROUNDS = 64
 _BLOCK = 2  # features whose flips share one batched forward pass (2^2 - 1 = 3 variants per sequence)
+# The sampler runs in inference mode. Diagnostics and tests that keep a run (``_Run``) to call its methods afterwards
+# turn it off while they capture runs, so that the run's state is made of normal tensors (an inference tensor cannot
+# be updated in place outside inference mode); the results are the same.
+_INFERENCE_MODE = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -594,7 +598,7 @@ class BetaProcessHMMSampler:
         # No gradient flows through a sampler: inference mode skips autograd's bookkeeping on its many small ops
         # (about 8 % of a LASA Multi_Models_3 run, the same result; one-off timing), and the result is cloned into
         # normal tensors, which callers may use in autograd.
-        with torch.inference_mode():
+        with torch.inference_mode(_INFERENCE_MODE):
             run = _Run(self, x, v, lengths, generator, prior, min_duration, (velocity_noise, speed_floor), c, blocks)
             result = run.sample()
         return _normal_tensors(result)
