@@ -397,10 +397,22 @@ def test_subtask_spaces_contain_their_steps_samples(case):
     assert min(fractions) >= 0.98, f"fraction of each step's samples inside its subtask space: {fractions}"
 
 
-def test_segmentation_holds_normal_tensors_usable_in_autograd():
+def test_segmentation_holds_normal_tensors_usable_in_autograd(monkeypatch):
     """The sampler runs in inference mode, but what ``segment`` returns holds normal tensors: the sampler's result
     can be edited in place outside inference mode, and gradients of log p(x | A_m) flow to x (a sampler that
     returned its inference tensors fails the first check)."""
+    import lfd_torch.segmentation.sampler as sampler_module
+
+    modes, original = [], sampler_module._Run.sample
+
+    def sample(self):
+        modes.append(torch.is_inference_mode_enabled())
+        return original(self)
+
+    monkeypatch.setattr(sampler_module._Run, "sample", sample)
+    syn = synthetic(*ACCURACY_CASES[0])
+    segment(syn.demos, generator=torch.Generator().manual_seed(0), n_iterations=2, n_chains=1)
+    assert modes == [True]  # the sampler ran in inference mode
     seg = segmented(*ACCURACY_CASES[0])
     res = seg.sampler
     for name in ("states", "lengths", "features", "field", "noise", "centre", "radius", "trace", "n_features_trace"):
