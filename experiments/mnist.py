@@ -23,8 +23,7 @@ digit). ``summary.md``: per digit and method, the means over starts. Publishing 
 
     LFD_MNIST_DIR=/path/to/mnist python experiments/mnist.py
     python experiments/mnist.py data.directory=/path/to/mnist digits=[4,9] data.n_demos=5
-    python experiments/mnist.py publish=true segmentation.block_emission=false segmentation.position_mixture=false
-        # the published run: its segmentation is the direction emission, the defaults when it was made
+    python experiments/mnist.py publish=true  # the published run (segmentation: the present defaults)
 """
 
 from __future__ import annotations
