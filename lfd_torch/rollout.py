@@ -213,7 +213,11 @@ class RolloutResult:
             (B, Q, d) positions.
         """
         B = self.n_starts
-        t = torch.as_tensor(times, dtype=self.positions.dtype, device=self.positions.device)
+        try:
+            t = torch.as_tensor(times, dtype=self.positions.dtype, device=self.positions.device)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise ShapeMismatchError(f"times must be a (Q,) or ({B}, Q) array of numbers, got {type(times).__name__}"
+                                     ) from exc
         if t.ndim == 1:
             t = t.unsqueeze(0).expand(B, -1)
         if t.ndim != 2 or t.shape[0] != B:
@@ -265,10 +269,8 @@ class RolloutResult:
 
 # ---------------------------------------------------------------------------------------------- validation
 def _check_tol(value: float | None, default: float, name: str) -> float:
-    tol = default if value is None else float(value)
-    if math.isnan(tol) or tol < 0:
-        raise InvalidArgumentError(f"{name} must be >= 0 (0 disables stopping, inf disables this criterion), got {value}")
-    return tol
+    """``value`` (None: ``default``) as a tolerance >= 0; 0 disables stopping, inf disables this criterion."""
+    return default if value is None else check_float(value, name, low=0.0, allow_inf=True)
 
 
 def _row_mask(rows: Any, B: int, device: torch.device) -> Tensor:
@@ -447,8 +449,7 @@ def rollout(
     method = _parse_enum(IntegrationMethod, method, "integration method")
     if isinstance(check_every, bool) or not isinstance(check_every, (int, np.integer)) or check_every < 1:
         raise InvalidArgumentError(f"check_every must be an int >= 1, got {check_every!r}")
-    if not 0.0 <= float(compact_below) <= 1.0:
-        raise InvalidArgumentError(f"compact_below must lie in [0, 1], got {compact_below}")
+    compact_below = check_float(compact_below, "compact_below", low=0.0, high=1.0)
     if hook is not None and not callable(hook):
         raise InvalidArgumentError(f"hook must be callable, got {type(hook).__name__}")
     if can_stop is not None and (hook is None or not callable(can_stop)):

@@ -26,6 +26,7 @@ from lfd_torch.errors import (
 __all__ = [
     "resolve_dtype",
     "resolve_device",
+    "float_dtype",
     "derive_seed",
     "FLOAT_DTYPES",
     "check_int",
@@ -53,13 +54,39 @@ def resolve_dtype(dtype: torch.dtype | str | None) -> torch.dtype | None:
     return _DTYPES[name]
 
 
-def resolve_device(device: torch.device | str | None) -> torch.device | None:
-    """A device or its name; ``"auto"`` picks CUDA when present, else the CPU (None passes through)."""
-    if device is None or isinstance(device, torch.device):
-        return device
+def resolve_device(device: torch.device | str | None, name: str = "device") -> torch.device | None:
+    """A device or its name; ``"auto"`` picks CUDA when present, else the CPU (None passes through).
+
+    Raises:
+        InvalidArgumentError: not a device name, or a CUDA device where CUDA is not available (naming ``name``).
+    """
+    if device is None:
+        return None
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
+    if not isinstance(device, torch.device):
+        try:
+            device = torch.device(device)
+        except (RuntimeError, TypeError) as exc:
+            raise InvalidArgumentError(f"{name} must be a torch.device or a device name such as 'cpu', 'cuda' or "
+                                       f"'auto', got {_show(device)}") from exc
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise InvalidArgumentError(f"{name} is {str(device)!r}, but CUDA is not available here; use 'cpu' or 'auto'")
+    return device
+
+
+def float_dtype(dtype: torch.dtype | str | None, name: str = "dtype") -> torch.dtype | None:
+    """``dtype`` (a torch dtype or its name, None passes through) checked to be one of :data:`FLOAT_DTYPES`.
+
+    Raises:
+        UnknownNameError: an unknown dtype name. InvalidArgumentError: another dtype (naming ``name``).
+    """
+    if dtype is not None and not isinstance(dtype, (torch.dtype, str)):
+        raise InvalidArgumentError(f"{name} must be torch.float32 or torch.float64 (or its name), got {_show(dtype)}")
+    out = resolve_dtype(dtype)
+    if out is not None and out not in FLOAT_DTYPES:
+        raise InvalidArgumentError(f"{name} must be torch.float32 or torch.float64, got {out}")
+    return out
 
 
 def derive_seed(*parts: object) -> int:

@@ -40,7 +40,7 @@ from lfd_torch.errors import (
     TooFewSamplesError,
     UnknownNameError,
 )
-from lfd_torch.gmm import GMM, fit_em
+from lfd_torch.gmm import GMM, PCGMMFitter, fit_em
 from lfd_torch.rollout import rollout
 from lfd_torch.store import collect, read_table
 from test_primitive_contract import small_lasa
@@ -255,6 +255,14 @@ def test_deterministic_and_info(generator: torch.Generator) -> None:
     for key in ("time_gmm_s", "time_p_s", "time_a_s", "time_total_s", "train_mse", "n_components", "solver"):
         assert key in a.info
     assert a.info["n_components"] == 3 and isinstance(a, StablePrimitive)
+
+
+def test_the_default_gmm_is_pcgmm() -> None:
+    """``fit_lpvds`` without ``gmm`` fits PC-GMM with its defaults (the README's "PC-GMM by default")."""
+    demos = small_lasa("Snake", stride=20)
+    a = fit_lpvds(demos, generator=torch.Generator().manual_seed(3))
+    b = fit_lpvds(demos, gmm=PCGMMFitter(), generator=torch.Generator().manual_seed(3))
+    assert torch.equal(a.gmm.means, b.gmm.means) and torch.equal(a.gmm.covariances, b.gmm.covariances)
 
 
 # ---------------------------------------------------------------------------------------------- configs, experiment

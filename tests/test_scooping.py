@@ -188,6 +188,23 @@ def test_damaged_npz_raises_store_error(demo, tmp_path):
         load_demonstration(tmp_path / "len.npz")
     with pytest.raises(StoreError, match="missing.npz"):
         load_demonstration(tmp_path / "missing.npz")
+    # the array's name says what it holds: 'q' (T, 7) joint angles, 'tip' (T, 3) positions; real numbers, t (T,)
+    bad = {"q3": {"t": np.arange(3.0), "q": np.zeros((3, 3))},
+           "complex": {"t": np.arange(3.0), "tip": np.zeros((3, 3)) + 1j},
+           "t2d": {"t": np.arange(6.0).reshape(2, 3), "tip": np.zeros((6, 3))},
+           "both": {"t": np.arange(3.0), "tip": np.zeros((3, 3)), "q": np.zeros((3, 7))}}
+    for name, arrays in bad.items():
+        np.savez(tmp_path / f"{name}.npz", **arrays)
+        with pytest.raises(StoreError, match=f"{name}.npz"):
+            load_demonstration(tmp_path / f"{name}.npz")
+
+
+def test_load_demonstration_checks_its_dtype(demo, tmp_path):
+    good = save_demonstration(demo, tmp_path / "good.npz")
+    assert load_demonstration(good, dtype="float32").tip.dtype == torch.float32
+    for bad in (torch.int64, torch.float16):
+        with pytest.raises(InvalidArgumentError, match="dtype"):
+            load_demonstration(good, dtype=bad)
     with pytest.raises(InvalidArgumentError):
         load_demonstration(tmp_path / "demo.txt")
 

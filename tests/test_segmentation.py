@@ -663,7 +663,7 @@ def test_bad_input_typed_errors():
                 dwell_cue=False, tolerance_correlation=None)
     with pytest.raises(ValueError):
         segment([good], generator=g, stickiness=-1.0)
-    with pytest.raises(TypeError):
+    with pytest.raises(InvalidArgumentError, match="not_a_parameter"):  # a typo in a Hydra config key
         BPGMHMMSegmenter(not_a_parameter=1)
     with pytest.raises(ValueError):
         FixedSegmenter([0.5, 0.2])

@@ -12,6 +12,7 @@ from scipy.signal import lfilter
 from lfd_torch.errors import InvalidArgumentError
 from lfd_torch.segmentation import segment
 from lfd_torch.segmentation.segmentation import (
+    NOISE_FLOOR,
     position_noise,
     position_noise_model,
     scale_velocities,
@@ -192,3 +193,22 @@ def test_every_stored_data_set_keeps_the_white_estimate():
                 .demos.sequences())
     kept = [position_noise_model(seqs) == (position_noise(seqs), 0.0) for seqs in sets]
     assert len(kept) == 313 and all(kept), [i for i, k in enumerate(kept) if not k]
+    # and segment's noise floor (for noise-free data) binds on none of them: their results do not depend on it
+    spans = [float((torch.cat(s).amax(0) - torch.cat(s).amin(0)).norm()) for s in sets]
+    above = [position_noise(s) > NOISE_FLOOR * span for s, span in zip(sets, spans)]
+    assert all(above), [i for i, a in enumerate(above) if not a]
+
+
+def test_noise_free_demonstrations_segment():
+    """Generated paths without noise estimate a position noise of 0 (or of rounding size); ``segment`` then assumes
+    the floor NOISE_FLOOR x span instead of failing in the block evidence's Cholesky factors (a SolverError before the
+    floor), and a noise-free single path of three straight legs at constant speed gets its three steps."""
+    syn = multi_step_demos(torch.Generator().manual_seed(0), n_demos=1, n_steps=3, profile="constant", noise=0.0)
+    assert position_noise(syn.demos.sequences()) < 1e-9
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0))
+    assert seg.n_steps == 3
+    t = torch.linspace(0.0, 1.0, 200, dtype=F64)[:, None]
+    corner = torch.cat([t * torch.tensor([1.0, 0.0], dtype=F64), torch.tensor([1.0, 0.0], dtype=F64)
+                        + t[1:] * torch.tensor([0.0, 1.0], dtype=F64)])  # an exact L, second differences all 0
+    assert position_noise([corner]) == 0.0
+    assert segment([corner], generator=torch.Generator().manual_seed(0)).n_steps >= 2

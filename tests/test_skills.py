@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from lfd_torch.data.lasa import load_lasa
-from lfd_torch.ds import fit_lpvds, fit_seds
+from lfd_torch.ds import fit_lpvds, fit_seds, load_primitive
 from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError, StoreError
 from lfd_torch.gmm import PCGMMFitter
 from lfd_torch.modulation import Branch, Modulation, modulated_velocity, renyi_entropy
@@ -145,6 +145,48 @@ def test_damaged_library_files_raise_store_error_naming_the_file(l_library: Skil
         target.write_text(json.dumps(man))
     with pytest.raises(StoreError, match=target.name):
         SkillLibrary.load(root)
+
+
+@pytest.mark.parametrize("edit", [{"span": 1e-3}, {"entropy_quantile": 0.5}, {"stability": {"passed": True}},
+                                  {"info": {}}])
+def test_an_edited_manifest_is_detected(l_library: SkillLibrary, tmp_path, edit) -> None:
+    """The manifest carries a digest of its own content: an edited value (span sets the engine's arrival radius)
+    is a StoreError naming the manifest, not a library that loads with it."""
+    root = tmp_path / "lib"
+    l_library.save(root)
+    SkillLibrary.load(root)  # the untouched copy loads
+    man = json.loads((root / "manifest.json").read_text())
+    man.update(edit)
+    (root / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(StoreError, match="manifest.json"):
+        SkillLibrary.load(root)
+
+
+@pytest.mark.parametrize("value", ["abc", -1.0, None])
+def test_a_schema_1_manifest_with_a_bad_span_is_a_store_error(l_library: SkillLibrary, tmp_path, value) -> None:
+    """Libraries of schema 1 (no manifest digest) are still read, with their values checked."""
+    root = tmp_path / "lib"
+    l_library.save(root)
+    man = json.loads((root / "manifest.json").read_text())
+    man.pop("digest")
+    man["schema_version"] = 1
+    (root / "manifest.json").write_text(json.dumps(man))
+    SkillLibrary.load(root)
+    man["span"] = value
+    (root / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(StoreError, match="span"):
+        SkillLibrary.load(root)
+
+
+def test_bad_dtype_or_device_on_load_blames_the_argument(l_library: SkillLibrary, tmp_path) -> None:
+    root = tmp_path / "lib"
+    l_library.save(root)
+    with pytest.raises(InvalidArgumentError, match="dtype"):
+        SkillLibrary.load(root, dtype=torch.float16)
+    with pytest.raises(InvalidArgumentError, match="device"):
+        SkillLibrary.load(root, device="bogus")
+    with pytest.raises(InvalidArgumentError, match="dtype"):
+        load_primitive(root / "step_0.pt", dtype=torch.float16)
 
 
 # ---------------------------------------------------------------------------------------------- tree vs vectorised

@@ -186,7 +186,7 @@ def test_fit_lpvds_typed_errors(demos) -> None:
         (dict(solver_options={"CLARABEL": 3}), "solver_options"),
         (dict(attractor=torch.zeros(1, 1, 2, dtype=F64)), "attractor"),
         (dict(attractor=torch.zeros(2, dtype=torch.complex128)), "attractor"),
-        (dict(gmm=None), "gmm"),
+        (dict(gmm=3), "gmm"),
     ]
     for kw, name in cases:
         with pytest.raises(LfdError, match=name):
@@ -223,9 +223,15 @@ def test_demos_constructor_and_index_holes(demos) -> None:
         Demos(demos.positions, demos.velocities, demos.times, demos.lengths.double() + 0.5, demos.attractor)
     with pytest.raises(ShapeMismatchError, match="positions must be a torch.Tensor"):
         Demos(demos.positions.tolist(), demos.velocities, demos.times, demos.lengths, demos.attractor)
-    for index in (1.5, "a", 7, [0, 9]):
+    for index in (1.5, "a", 7, [0, 9], slice(None, None, 0), slice(None, None, -1), slice("a", None)):
         with pytest.raises(InvalidIndexError, match="index"):
             demos[index]
+    with pytest.raises(ShapeMismatchError, match="times"):  # a (2, 3) array is not 6 time stamps
+        Demos.from_sequences([seq[:6]], times=[torch.arange(6, dtype=F64).reshape(2, 3)])
+    column = Demos.from_sequences([seq[:6]], times=[torch.arange(6, dtype=F64).reshape(6, 1)])
+    assert torch.equal(column.times[0], torch.arange(6, dtype=F64))
+    with pytest.raises(ShapeMismatchError, match="float32"):  # the dtypes differ, not the attractors
+        Demos.concat([demos, demos.to(dtype=torch.float32)])
     assert issubclass(InvalidIndexError, IndexError) and issubclass(InvalidIndexError, ValueError)
 
 
@@ -261,6 +267,14 @@ def test_rollout_bounds_and_disturbances() -> None:
         rollout(lambda x: -x, x0, "0.1", 5)
     with pytest.raises(InvalidArgumentError, match="disturbances"):
         rollout(lambda x: -x, x0, 0.1, 5, disturbances=3)
+    g = torch.zeros(2, dtype=F64)
+    for kw, name in ((dict(position_tol="a"), "position_tol"), (dict(velocity_tol=-1.0), "velocity_tol"),
+                     (dict(compact_below="a"), "compact_below"), (dict(compact_below=2.0), "compact_below")):
+        with pytest.raises(InvalidArgumentError, match=name):
+            rollout(lambda x: -x, x0, 0.1, 5, attractor=g, **kw)
+    res = rollout(lambda x: -x, x0, 0.1, 5)
+    with pytest.raises(ShapeMismatchError, match="times"):
+        res.positions_at("a")
     for kw in (dict(steps=-1, value=[1.0, 0.0]), dict(steps=2.5, value=[1.0, 0.0]), dict(steps=1, value="ab")):
         with pytest.raises(InvalidArgumentError, match="disturbance"):
             Disturbance(**kw)

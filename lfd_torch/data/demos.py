@@ -169,7 +169,11 @@ class Demos:
                 raise ShapeMismatchError(f"{len(times)} time vectors for {len(pos)} demonstrations")
             tms = []
             for i, (t, p) in enumerate(zip(times, pos)):
-                tt = _as_tensor(t, dtype, p.device, "times", i).reshape(-1)
+                tt = _as_tensor(t, dtype, p.device, "times", i)
+                if tt.ndim == 2 and tt.shape[1] == 1:  # a column vector
+                    tt = tt[:, 0]
+                if tt.ndim != 1:
+                    raise ShapeMismatchError(f"times: a (T,) vector per demonstration, got shape {tuple(tt.shape)}", i)
                 if tt.shape[0] != p.shape[0]:
                     raise ShapeMismatchError(f"times: {tt.shape[0]} time stamps for {p.shape[0]} samples", i)
                 tms.append(tt)
@@ -343,7 +347,12 @@ class Demos:
                 raise InvalidIndexError(f"demonstration index {index} out of range for {self.n_demos} demonstrations")
             return torch.tensor([index % self.n_demos], device=self.device)
         if isinstance(index, slice):
-            return torch.arange(self.n_demos, device=self.device)[index]
+            if index.step == 0:
+                raise InvalidIndexError("index: a slice step must not be 0")
+            try:
+                return torch.arange(self.n_demos, device=self.device)[index]
+            except (TypeError, ValueError) as exc:  # a step < 0 (torch has no negative steps) or non-int bounds
+                raise InvalidIndexError(f"index: {index!r} is not a slice of ints with a positive step") from exc
         try:
             idx = torch.as_tensor(np.asarray(index) if not isinstance(index, Tensor) else index, device=self.device)
         except (TypeError, ValueError) as exc:
@@ -404,6 +413,9 @@ class Demos:
         for k, p in enumerate(parts[1:], 1):
             if p.dim != first.dim:
                 raise ShapeMismatchError(f"part {k} has dimension {p.dim}, part 0 has {first.dim}")
+            if p.dtype != first.dtype or p.device != first.device:
+                raise ShapeMismatchError(f"part {k} is {p.dtype} on {p.device}, part 0 {first.dtype} on {first.device}"
+                                         " (convert with .to(dtype=..., device=...))")
             if not torch.equal(p.attractor.to(first.attractor), first.attractor):
                 raise ShapeMismatchError(f"part {k} has a different attractor")
         T = max(p.max_length for p in parts)

@@ -54,7 +54,7 @@ from lfd_torch.errors import (
     TooFewSamplesError,
     UnknownNameError,
 )
-from lfd_torch.gmm import GMM, check_samples
+from lfd_torch.gmm import GMM, PCGMMFitter, check_samples
 from lfd_torch.utils import check_float, check_generator, check_tensor, solver_errors
 
 __all__ = ["LPVDS", "LYAPUNOV_KINDS", "fit_lpvds", "resolve_gmm", "solve_lpv_matrices", "training_samples"]
@@ -219,7 +219,7 @@ def fit_lpvds(
     demos: Demos,
     attractor: Tensor | None = None,
     *,
-    gmm: GMMSource,
+    gmm: GMMSource | None = None,
     lyapunov: str | Tensor = "pqlf",
     eps: float = 1e-3,
     ridge: float = 1e-6,
@@ -237,7 +237,8 @@ def fit_lpvds(
     Args:
         demos: training demonstrations (all valid samples are used).
         attractor: optional (d,) goal; default ``demos.attractor``.
-        gmm: a fitted GMM on positions, or a fitter (see :func:`resolve_gmm`).
+        gmm: a fitted GMM on positions, or a fitter (see :func:`resolve_gmm`); None: PC-GMM with its defaults
+            (:class:`~lfd_torch.gmm.PCGMMFitter`), as ``conf/ds/lpvds.yaml``.
         lyapunov: ``"pqlf"`` (P estimated from data), ``"qlf"`` (P = I) or an explicit (d, d) SPD tensor.
         eps: stability margin of the A step, A_k^T P + P A_k <= -eps I (1/s).
         ridge: relative ridge on the A-step moment matrix.
@@ -259,6 +260,8 @@ def fit_lpvds(
         CertificationError: the solution does not satisfy lambda_max(A_k^T P + P A_k) < 0 in float64.
     """
     t_start = time.perf_counter()
+    if gmm is None:
+        gmm = PCGMMFitter()
     x, x_dot, g = training_samples(demos, attractor)
     check_float(eps, "eps", low=0.0, low_open=True)
     check_float(ridge, "ridge", low=0.0)

@@ -47,7 +47,7 @@ from lfd_torch.errors import (
 from lfd_torch.gmm import GMM, GaussianBank
 from lfd_torch.store import atomic_path
 from lfd_torch.store.checksum import DIGEST_KEY, compact_cpu, payload_digest, verify_digest
-from lfd_torch.utils import FLOAT_DTYPES, check_path, check_tensor, resolve_device, resolve_dtype
+from lfd_torch.utils import FLOAT_DTYPES, check_path, check_tensor, float_dtype, resolve_device, resolve_dtype
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -353,6 +353,7 @@ class StablePrimitive:
         cls, path: str | os.PathLike[str], *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
     ) -> StablePrimitive:
         """Read a file written by :meth:`save` (``weights_only=True``); see :meth:`from_state_dict`."""
+        dtype, device = float_dtype(dtype), resolve_device(device)  # the arguments' faults are not the file's
         try:
             state = torch.load(Path(path), map_location="cpu", weights_only=True)
         except Exception as exc:  # noqa: BLE001 - a damaged file fails anywhere in torch's unpickler (IndexError, ...)

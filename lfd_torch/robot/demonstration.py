@@ -39,6 +39,7 @@ from lfd_torch.robot.arm import NEUTRAL_POSE, BaxterArm
 from lfd_torch.robot.controller import orientation_error
 from lfd_torch.robot.plant import Scene
 from lfd_torch.robot.urdf import DEFAULT_TOOL_OFFSET
+from lfd_torch.utils import float_dtype
 
 __all__ = [
     "STAGE_NAMES",
@@ -408,6 +409,9 @@ def load_demonstration(
             time not increasing.
         InvalidArgumentError: joint angles outside the limits; an unknown extension.
     """
+    dtype = float_dtype(dtype)
+    if dtype is None:
+        raise InvalidArgumentError("dtype must be torch.float32 or torch.float64, got None")
     p = Path(path)
     ext = p.suffix.lower()
     if ext not in (".csv", ".npz"):
@@ -435,15 +439,21 @@ def load_demonstration(
             files = set(z.files)
             if "t" not in files or not ({"q", "tip"} & files):
                 raise StoreError(f"{p}: needs arrays 't' and 'q' (T, 7) or 'tip' (T, 3), found {sorted(files)}")
-            t = np.asarray(z["t"], dtype=float).reshape(-1, 1)
-            v = np.asarray(z["q"] if "q" in files else z["tip"], dtype=float)
+            if {"q", "tip"} <= files:
+                raise StoreError(f"{p}: holds both 'q' and 'tip'; a demonstration file holds one of them")
+            name = "q" if "q" in files else "tip"
+            t, v = z["t"], z[name]
     except StoreError:
         raise
     except Exception as exc:  # zipfile.BadZipFile, ValueError, EOFError, OSError: a damaged archive
         raise StoreError(f"{p}: not a readable NPZ archive ({type(exc).__name__}: {exc})") from exc
-    if v.ndim != 2 or v.shape[0] != t.shape[0]:
-        raise StoreError(f"{p}: {t.shape[0]} time stamps for values of shape {v.shape}")
-    return _from_table(np.concatenate([t, v], 1), p, tool_offset, dtype)
+    width = 7 if name == "q" else 3
+    for key, arr in (("t", t), (name, v)):
+        if arr.dtype.kind not in "iuf":  # complex, bool, strings, objects: not numbers the file format allows
+            raise StoreError(f"{p}: array {key!r} holds {arr.dtype} values, expected real numbers")
+    if t.ndim != 1 or v.ndim != 2 or v.shape != (t.shape[0], width):
+        raise StoreError(f"{p}: expected 't' (T,) and {name!r} (T, {width}), got shapes {t.shape} and {v.shape}")
+    return _from_table(np.concatenate([t.astype(float)[:, None], v.astype(float)], 1), p, tool_offset, dtype)
 
 
 def _numeric(s: str) -> bool:

@@ -41,11 +41,11 @@ from lfd_torch.errors import InvalidArgumentError, LfdError, ShapeMismatchError,
 from lfd_torch.modulation import reference_entropy
 from lfd_torch.segmentation import Segmentation
 from lfd_torch.store import atomic_path
-from lfd_torch.utils import check_choice, check_float, check_path
+from lfd_torch.utils import check_choice, check_float, check_path, float_dtype, resolve_device
 
 __all__ = ["LIBRARY_SCHEMA", "Skill", "SkillLibrary", "default_fitter"]
 
-LIBRARY_SCHEMA = 1
+LIBRARY_SCHEMA = 2  # 2: the manifest carries a digest of its own content; 1 (without it) is still read
 _KIND = "lfd_torch.SkillLibrary"
 _MANIFEST = "manifest.json"
 
@@ -319,6 +319,7 @@ class SkillLibrary:
             "info": self.info,
             "files": files,
         }
+        manifest["digest"] = _manifest_digest(manifest)
         text = json.dumps(manifest, indent=2, sort_keys=True, allow_nan=True)
         with atomic_path(root / _MANIFEST) as tmp:
             tmp.write_text(text)
@@ -332,11 +333,15 @@ class SkillLibrary:
         dtype: torch.dtype | None = None,
         device: torch.device | str | None = None,
     ) -> SkillLibrary:
-        """Read a library written by :meth:`save`; every file is checked against its manifest checksum.
+        """Read a library written by :meth:`save`; every file is checked against its manifest checksum, and the
+        manifest against its own digest (libraries of schema 1, written before the manifest had one, are read
+        without that check).
 
         Raises:
             StoreError: a missing, truncated, altered or foreign file (the message names it), or another schema.
+            InvalidArgumentError, UnknownNameError: a bad ``dtype`` or ``device``.
         """
+        dtype, device = float_dtype(dtype), resolve_device(device)  # the arguments' faults are not the files'
         root = check_path(directory, "directory", error=StoreError)
         man_path = root / _MANIFEST
         try:
@@ -345,13 +350,19 @@ class SkillLibrary:
             raise StoreError(f"cannot read the library manifest {man_path}: {exc}") from exc
         if not isinstance(manifest, dict) or manifest.get("kind") != _KIND:
             raise StoreError(f"{man_path} is not a skill-library manifest")
-        if manifest.get("schema_version") != LIBRARY_SCHEMA:
-            raise StoreError(f"{man_path}: schema {manifest.get('schema_version')!r}, expected {LIBRARY_SCHEMA}")
+        schema = manifest.get("schema_version")
+        if schema not in (1, LIBRARY_SCHEMA):
+            raise StoreError(f"{man_path}: schema {schema!r}, expected {LIBRARY_SCHEMA} (or 1)")
+        if schema != 1 and manifest.get("digest") != _manifest_digest(manifest):
+            raise StoreError(f"{man_path} does not match its digest (edited or damaged)")
         try:
             files = dict(manifest["files"])
             n_steps = int(manifest["n_steps"])
+            span = check_float(manifest["span"], f"{man_path}: span", low=0.0, low_open=True, error=StoreError)
+            quantile = check_float(manifest.get("entropy_quantile"), f"{man_path}: entropy_quantile", low=0.0, high=1.0,
+                                   allow_none=True, error=StoreError)
         except (KeyError, TypeError, ValueError) as exc:
-            raise StoreError(f"{man_path} lacks {exc}") from exc
+            raise StoreError(f"{man_path}: a missing or bad entry ({type(exc).__name__}: {exc})") from exc
         for name, digest in files.items():
             path = root / name
             if not path.is_file():
@@ -376,10 +387,16 @@ class SkillLibrary:
         if dtype is not None or device is not None:
             seg = _segmentation_to(seg, skills[0].primitive.dtype, skills[0].primitive.device)
         try:
-            return cls(seg, tuple(skills), manifest.get("entropy_quantile"), float(manifest["span"]),
-                       manifest.get("stability"), dict(manifest.get("info") or {}))  # fmt: skip
-        except (KeyError, LfdError) as exc:
+            return cls(seg, tuple(skills), quantile, span, manifest.get("stability"),
+                       dict(manifest.get("info") or {}))  # fmt: skip
+        except (KeyError, TypeError, ValueError, LfdError) as exc:
             raise StoreError(f"{man_path}: inconsistent library ({exc})") from exc
+
+
+def _manifest_digest(manifest: dict) -> str:
+    """SHA-256 of the manifest's content without its own ``digest`` entry (keys sorted, as it is written)."""
+    body = {k: v for k, v in manifest.items() if k != "digest"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, allow_nan=True).encode()).hexdigest()
 
 
 def _with_reproduction_thresholds(lib: SkillLibrary, demos: Demos, dt: float = 0.01) -> SkillLibrary:
