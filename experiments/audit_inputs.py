@@ -396,8 +396,19 @@ def corpus_demos(fx: Fixtures) -> list[Case]:
                          (torch.tensor([2, 50, 50]), torch.tensor([51, 50, 50]), torch.tensor([50, 50]),
                           torch.tensor([50.5, 50, 50]), [50, 50, 50], None),
                          kind="mismatch")  # fmt: skip
-    cases += value_cases(g, "index", lambda v: fx.demos[v], (5, -9, [0, 7], "a", 1.5), (0, [0, 2]), kind="type",
-                         names=("demonstration",))  # fmt: skip
+    cases += value_cases(g, "index", lambda v: fx.demos[v], (5, -9, [0, 7], "a", 1.5, slice(None, None, 0),
+                                                             slice(None, None, -1), slice("a", None)),
+                         (0, [0, 2], slice(0, 3, 2)), kind="type", names=("demonstration",))  # fmt: skip
+    cases += [
+        Case(g, "mismatch", "times: a (2, 25) array for 50 samples",
+             lambda: Demos.from_sequences([seq], times=[torch.arange(50, dtype=F64).reshape(2, 25)]), "error",
+             ("times",)),
+        Case(g, "dtype", "concat: float64 and float32 parts",
+             lambda: Demos.concat([fx.demos, fx.demos.to(dtype=torch.float32)]), "error", ("float32", "dtype")),
+    ]  # fmt: skip
+    bad_devices = ("bogus", 3) + (() if torch.cuda.is_available() else ("cuda",))
+    cases += value_cases(g, "device", lambda v: fx.demos.to(device=v), bad_devices, ("cpu",), kind="type",
+                         check=lambda d: finite(d.positions))  # fmt: skip
     return cases
 
 
@@ -558,7 +569,7 @@ def corpus_gmm(fx: Fixtures) -> list[Case]:
 # ---------------------------------------------------------------------------------------------- corpus: ds
 def corpus_ds(fx: Fixtures) -> list[Case]:
     from lfd_torch.data import Demos
-    from lfd_torch.ds import fit_lpvds, fit_seds
+    from lfd_torch.ds import fit_lpvds, fit_seds, load_primitive
     from lfd_torch.gmm import EMFitter
 
     d = fx.demos
@@ -592,8 +603,9 @@ def corpus_ds(fx: Fixtures) -> list[Case]:
         cases += value_cases(g, "eps", lambda e, fit=fit: fit(eps=e), POSITIVE_BAD)
         cases += value_cases(g, "generator", lambda r, fit=fit: fit(generator=r), (0, "seed"))
     g = "fit_lpvds"
-    cases += value_cases(g, "gmm", lambda m: lpv(gmm=m), (None, 3, "bogus", fx.seds.gmm.replace(
-        means=fx.seds.gmm.means[:, :1], covariances=fx.seds.gmm.covariances[:, :1, :1])))  # fmt: skip
+    cases += value_cases(g, "gmm", lambda m: lpv(gmm=m), (3, "bogus", fx.seds.gmm.replace(
+        means=fx.seds.gmm.means[:, :1], covariances=fx.seds.gmm.covariances[:, :1, :1])), (None,),
+                         check=certified)  # fmt: skip  (None: PC-GMM with its defaults)
     cases += value_cases(g, "lyapunov", lambda m: lpv(lyapunov=m),
                          ("sos", 3, torch.eye(3, dtype=F64), -torch.eye(2, dtype=F64),
                           torch.full((2, 2), math.nan, dtype=F64)), ("qlf",), check=certified)  # fmt: skip
@@ -629,6 +641,13 @@ def corpus_ds(fx: Fixtures) -> list[Case]:
                                   empty_ok=True, batched=True)  # fmt: skip
         cases += value_cases(g, "dtype", lambda t, m=model: m.to(dtype=t)(x.to(t)),
                              (torch.int64, torch.float16, "float16"), (torch.float32,))  # fmt: skip
+        saved = model.save(fx.tmp / f"{name}_args.pt")
+        cases += value_cases(g, "load_primitive dtype", lambda t, f=saved: load_primitive(f, dtype=t),
+                             (torch.int64, torch.float16, "bogus", 3), ("float32",), names=("dtype",),
+                             check=lambda m: finite(m(x.to(m.dtype))))  # fmt: skip
+        cases += value_cases(g, "load_primitive device", lambda v, f=saved: load_primitive(f, device=v),
+                             ("bogus", 3) + (() if torch.cuda.is_available() else ("cuda",)), ("cpu",),
+                             names=("device",), check=lambda m: finite(m(x)))  # fmt: skip
     return cases
 
 
@@ -653,6 +672,14 @@ def corpus_segmentation(fx: Fixtures) -> list[Case]:
     cases.append(Case(g, "zero_velocity", "demos: one repeated point", lambda: seg(demos=still), "either",
                       ("demos", "demonstration", "rest", "samples")))  # fmt: skip
     cases += value_cases(g, "generator", lambda r: seg(generator=r), (None, 0))
+    from lfd_torch.segmentation import BPGMHMMSegmenter
+    from lfd_torch.segmentation.synthetic import multi_step_demos
+
+    clean = multi_step_demos(gen(0), n_demos=1, n_steps=3, profile="constant", noise=0.0).demos
+    cases.append(Case(g, "zero_noise", "demos: a generated path without noise (valid)", lambda: seg(demos=clean),
+                      "result", ("demos",), lambda r: None if r.n_steps >= 1 else "no step"))
+    cases += value_cases("BPGMHMMSegmenter", "hyperparameters", lambda kw: BPGMHMMSegmenter(**kw),
+                         ({"stickines": 25.0}, {"foo": 1}), names=("stickines", "foo"))  # fmt: skip
     for arg, bad in [("n_chains", COUNT_BAD + (10**6,)), ("n_iterations", COUNT_BAD + (10**9,)),
                      ("n_initial_features", COUNT_BAD + (1000,)), ("max_samples", COUNT_BAD + (10**9,)),
                      ("min_length", (-0.1, 1.5, math.nan)), ("burn_in", (-0.1, 1.0, math.nan)),
@@ -815,9 +842,17 @@ def corpus_rollout(fx: Fixtures) -> list[Case]:
                          (torch.zeros(3, dtype=F64), torch.tensor([math.nan, 0.0], dtype=F64), "abc"))  # fmt: skip
     cases += value_cases(g, "position_tol", lambda t: rollout(field, x0, 0.05, 5, position_tol=t), NONNEG_BAD)
     cases += value_cases(g, "velocity_tol", lambda t: rollout(field, x0, 0.05, 5, velocity_tol=t), NONNEG_BAD)
+    goal = torch.zeros(2, dtype=F64)
+    for arg in ("position_tol", "velocity_tol"):
+        cases += value_cases(g, f"{arg} (with an attractor)",
+                             lambda t, arg=arg: rollout(field, x0, 0.05, 5, attractor=goal, **{arg: t}),
+                             (-1.0, math.nan, "1", "a"), (0.0, math.inf), names=(arg,),
+                             check=conv)  # fmt: skip
+    cases += value_cases(g, "positions_at times", lambda t: rollout(field, x0, 0.05, 5).positions_at(t),
+                         ("a", [-1.0], [math.nan]), ([0.0, 0.1],), names=("times",), check=finite)  # fmt: skip
     cases += value_cases(g, "check_every", lambda c: rollout(field, x0, 0.05, 5, check_every=c), (0, -1, 2.5, "3"))
     cases += value_cases(g, "compact_below", lambda c: rollout(field, x0, 0.05, 5, compact_below=c),
-                         (-0.1, 1.5, math.nan))  # fmt: skip
+                         (-0.1, 1.5, math.nan, "a"))  # fmt: skip
     cases += value_cases(g, "hook_until", lambda c: rollout(field, x0, 0.05, 5, hook_until=c), (-1, 2.5, "3"))
     cases += value_cases(g, "disturbances", lambda dd: rollout(field, x0, 0.05, 10, disturbances=dd),
                          (3, "abc", [3]), names=("disturbance",))  # fmt: skip
@@ -881,6 +916,25 @@ def corpus_skills(fx: Fixtures) -> list[Case]:
     lib.save(lib_dir)
     cases += file_cases(g, "SkillLibrary.load", SkillLibrary.load, lib_dir, other=lib_dir, tmp=fx.tmp / "libs",
                         directory=True)  # fmt: skip
+    import json
+
+    def edited(change: dict[str, Any]) -> Any:
+        root = fx.tmp / f"lib_edit_{len(list(fx.tmp.glob('lib_edit_*')))}"
+        lib.save(root)
+        man = json.loads((root / "manifest.json").read_text())
+        man.update(change)
+        (root / "manifest.json").write_text(json.dumps(man))
+        return SkillLibrary.load(root)
+
+    cases += value_cases(g, "manifest edit", edited, ({"span": 1e-3}, {"entropy_quantile": 7},
+                                                      {"stability": {"passed": True}}, {"span": "abc"}),
+                         kind="file", names=("manifest.json",))  # fmt: skip
+    cases += value_cases(g, "load dtype", lambda t: SkillLibrary.load(lib_dir, dtype=t),
+                         (torch.float16, "bogus", torch.int64), ("float32",), names=("dtype",),
+                         check=lambda lb: None if lb.dtype == torch.float32 else "not float32")  # fmt: skip
+    cases += value_cases(g, "load device", lambda v: SkillLibrary.load(lib_dir, device=v),
+                         ("bogus",) + (() if torch.cuda.is_available() else ("cuda",)), ("cpu",), names=("device",),
+                         check=lambda lb: None)  # fmt: skip
     cases += value_cases(g, "directory", lambda p: lib.save(p), (None, 3, lib_dir / "manifest.json"), kind="file",
                          names=("director", "path", "None", "3", "manifest.json"))  # fmt: skip
     g = "SkillEngine"
@@ -1007,6 +1061,22 @@ def corpus_robot(fx: Fixtures) -> list[Case]:
                          ([math.nan, 0, 0], [1.0, 2.0], "abc", None, [1e300, 0, 0]))  # fmt: skip
     cases += value_cases(g, "body", lambda b: plant.apply_force(b, [0.0, 0.0, 1.0]), ("bogus", None, 3))
     cases += value_cases(g, "n_substeps", lambda n: plant.step(n), (0, -1, 2.5, "3", 10**9))
+    from lfd_torch.robot.demonstration import load_demonstration
+
+    tmp = fx.tmp / "demo_files"
+    tmp.mkdir(exist_ok=True)
+    arrays = {"q_of_width_3": {"t": np.arange(3.0), "q": np.zeros((3, 3))},
+              "complex_tip": {"t": np.arange(3.0), "tip": np.zeros((3, 3)) + 1j},
+              "t_2d": {"t": np.arange(6.0).reshape(2, 3), "tip": np.zeros((6, 3))},
+              "q_and_tip": {"t": np.arange(3.0), "tip": np.zeros((3, 3)), "q": np.zeros((3, 7))}}
+    for label, content in arrays.items():
+        np.savez(tmp / f"{label}.npz", **content)
+        cases.append(Case(g, "file", f"load_demonstration: {label}.npz",
+                          lambda f=tmp / f"{label}.npz": load_demonstration(f), "error", (f"{label}.npz",)))
+    np.savez(tmp / "good.npz", t=np.arange(3.0) * 0.01, tip=np.zeros((3, 3)))
+    cases += value_cases(g, "load_demonstration dtype", lambda t: load_demonstration(tmp / "good.npz", dtype=t),
+                         (torch.int64, torch.float16, None, "bogus"), ("float32",), names=("dtype",),
+                         check=lambda dm: finite(dm.tip))  # fmt: skip
     for arg, bad in [("timestep", (0.0, -1e-3, math.nan, "x", 1.0)), ("control_period", (0.0, -0.01, math.nan)),
                      ("stiffness", ([1.0] * 3, [-1.0] * 7)), ("max_lag", (-1.0, math.nan)),
                      ("velocity_map", ({"bogus": 1}, 3)), ("scene", ({"bogus": 1}, 3))]:  # fmt: skip
