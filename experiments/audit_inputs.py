@@ -688,6 +688,13 @@ def corpus_segmentation(fx: Fixtures) -> list[Case]:
         cases += value_cases(g, arg, lambda val, arg=arg: seg(**{arg: val}), bad)
     g = "FixedSegmenter"
     cases += value_cases(g, "boundaries", lambda b: FixedSegmenter(b)(d), ([1.5], [-0.1], [0.6, 0.4], ["a"], [math.nan]))
+    cases.append(Case(g, "hyper", "split of a 2-sample fixed step", lambda: FixedSegmenter([0.02, 0.5])(d).split(d),
+                      "error", ("step 0",)))
+    g = "Segmentation"
+    cases += value_cases(g, "i", lambda i: fx.segmentation.step_sequence(i), (-1, 5, 0.0, True, "0"), (0, 1),
+                         kind="type", check=lambda r: None if r == [0, 1] else "wrong steps")  # fmt: skip
+    cases.append(Case(g, "type", "split: a list of tensors", lambda: fx.segmentation.split(list(d.sequences())),
+                      "error", ("demos",)))
     g = "Segmentation"
     s = fx.segmentation
     cases += tensor_cases(g, "x", lambda a: s.log_density(a), d.positions[0, :5], single_ok=True, empty_ok=True,
@@ -952,6 +959,10 @@ def corpus_skills(fx: Fixtures) -> list[Case]:
                          (torch.tensor([5, 0]), torch.tensor([0]), torch.tensor([0.5, 0.0]), "abc"))  # fmt: skip
     cases += value_cases(g, "index", lambda i: eng.step_batch(x, route=torch.zeros(2, dtype=torch.long), index=i),
                          (torch.tensor([-1, 0]), torch.tensor([9, 0]), torch.tensor([0]), "abc"))  # fmt: skip
+    done_route = torch.zeros(x.shape[0], dtype=torch.long)
+    done_index = torch.full_like(done_route, len(lib.routes[0]))  # a finished row, as Decision.index returns it
+    cases += value_cases(g, "index (progress fed back)", lambda i: eng.step_batch(x, done_route, i)[0],
+                         (done_index + 1, -done_index), (done_index,), names=("index",), check=finite)  # fmt: skip
     cases += tensor_cases(g, "x0", lambda a: eng.rollout(a, dt=0.01, n_steps=5).result.positions, x, single_ok=True)
     cases += value_cases(g, "dt", lambda v: eng.rollout(x, dt=v, n_steps=5), POSITIVE_BAD)
     cases += value_cases(g, "n_steps", lambda n: eng.rollout(x, dt=0.01, n_steps=n), (-1, 2.5, "5", None, 10**12))

@@ -669,6 +669,34 @@ def test_bad_input_typed_errors():
         FixedSegmenter([0.5, 0.2])
 
 
+def test_segmentation_api_edges_are_typed_errors():
+    """A piece too short to be a demonstration of its own (split names the step and the user's demonstration, not
+    the piece's index within the step), an index out of range, a list given to ``split``, a 1-D or mismatched plot:
+    each is a typed error naming what is wrong, not a crash inside torch or matplotlib; float32 tensors stay
+    float32."""
+    from lfd_torch.errors import InvalidIndexError, ShapeMismatchError, TooFewSamplesError
+    from lfd_torch.segmentation.plot import plot_segmentation
+
+    line = torch.linspace(0.0, 1.0, 40, dtype=F64)[:, None] * torch.tensor([1.0, 0.5], dtype=F64)
+    demos = Demos.from_sequences([line])
+    with pytest.raises(TooFewSamplesError, match="step 0 .samples 0..1. has 2 samples"):  # the user's demo 0
+        FixedSegmenter([0.04, 0.5])(demos).split(demos)
+    assert FixedSegmenter([0.04, 0.5])(demos).split(demos, end_at_attractor=True)[0].lengths.tolist() == [3]
+    seg = FixedSegmenter([0.5])(demos)
+    assert seg.step_sequence(0) == [0, 1] and seg.switches(0) == [20]
+    for bad in (1, -1, 0.0, True):
+        with pytest.raises(InvalidIndexError, match="demonstration index"):
+            seg.step_sequence(bad)
+    with pytest.raises(InvalidArgumentError, match="Demos"):
+        seg.split([line])
+    with pytest.raises(ShapeMismatchError, match="segmented demonstrations"):
+        plot_segmentation(seg, demos[[0, 0]])
+    flat = Demos.from_sequences([line[:, :1]])
+    with pytest.raises(ShapeMismatchError, match="1-D"):
+        plot_segmentation(FixedSegmenter([0.5])(flat), flat)
+    assert FixedSegmenter([0.5])([line.float()]).attractors.dtype == torch.float32
+
+
 @pytest.mark.parametrize(
     ("name", "value"),
     [

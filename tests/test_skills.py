@@ -214,6 +214,26 @@ def _random_pairs(lib: SkillLibrary, n: int, gen: torch.Generator) -> tuple[torc
     return x, route, index
 
 
+def test_step_batch_takes_back_the_progress_it_returns(l_library: SkillLibrary) -> None:
+    """A closed loop feeds ``Decision.route`` / ``.index`` back; a finished row's index is its route's length (done),
+    which the next call must accept (it was rejected when the bound was the longest route - 1)."""
+    from lfd_torch.errors import InvalidIndexError
+
+    eng = SkillEngine(l_library, "full")
+    x = l_library.skills[0].train_positions[:4].clone()
+    v, dec, _ = eng.step_batch(x)
+    for _ in range(4000):
+        x = x + 0.01 * v
+        v, dec, _ = eng.step_batch(x, dec.route, dec.index)
+        if bool(dec.done.all()):
+            break
+    assert bool(dec.done.all()) and dec.index.tolist() == [len(l_library.routes[int(r)]) for r in dec.route]
+    v2, dec2, _ = eng.step_batch(x, dec.route, dec.index)  # done rows stay done, at rest
+    assert bool(dec2.done.all()) and torch.equal(dec2.index, dec.index)
+    with pytest.raises(InvalidIndexError, match="index"):
+        eng.step_batch(x, dec.route, dec.index + 1)
+
+
 @pytest.mark.parametrize("which", ["l_library", "mm3_all"])
 @pytest.mark.parametrize("mode", ["none", "full"])
 def test_vectorised_decisions_equal_the_py_trees_tick(which: str, mode: str, request) -> None:

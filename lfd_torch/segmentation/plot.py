@@ -47,6 +47,15 @@ def plot_segmentation(
     from matplotlib.colors import ListedColormap
     from matplotlib.figure import Figure
 
+    from lfd_torch.data import Demos
+    from lfd_torch.errors import ShapeMismatchError
+
+    if not isinstance(demos, Demos) or demos.n_demos != segmentation.n_sequences or demos.dim != segmentation.dim:
+        raise ShapeMismatchError(f"demos must be the {segmentation.n_sequences} segmented demonstrations "
+                                 f"({segmentation.dim}-D), got {getattr(demos, 'n_demos', type(demos).__name__)}")
+    if demos.dim < 2:
+        raise ShapeMismatchError(f"plot_segmentation draws 2-D or 3-D paths (3-D shows the first three axes), "
+                                 f"got {demos.dim}-D demonstrations")
     M = segmentation.n_steps
     d = demos.dim
     palette = [

@@ -177,9 +177,11 @@ import torch
 from torch import Tensor
 
 from lfd_torch.data import Demos
+from lfd_torch.data.demos import MIN_SAMPLES
 from lfd_torch.errors import (
     InvalidArgumentError,
     InvalidDemoError,
+    InvalidIndexError,
     NonFiniteError,
     ShapeMismatchError,
     SolverError,
@@ -191,6 +193,7 @@ from lfd_torch.segmentation.blocks import BlockMeans, block_means
 from lfd_torch.segmentation.dwell import dwell_covariate
 from lfd_torch.segmentation.field import field_log_likelihood_additive, field_observations
 from lfd_torch.segmentation.sampler import BetaProcessHMMSampler, SamplerResult
+from lfd_torch.utils import FLOAT_DTYPES
 
 __all__ = [
     "Segmentation",
@@ -266,11 +269,16 @@ class Segmentation:
 
     def switches(self, i: int) -> list[int]:
         """First samples of the pieces of demonstration i after its first (its step switches)."""
-        return self.pieces[i][1:, 1].tolist()
+        return self.pieces[self._sequence(i)][1:, 1].tolist()
 
     def step_sequence(self, i: int) -> list[int]:
         """Steps demonstration i visits, in time order."""
-        return self.pieces[i][:, 0].tolist()
+        return self.pieces[self._sequence(i)][:, 0].tolist()
+
+    def _sequence(self, i: int) -> int:
+        if isinstance(i, bool) or not isinstance(i, numbers.Integral) or not 0 <= i < self.n_sequences:
+            raise InvalidIndexError(f"i must be a demonstration index in 0..{self.n_sequences - 1}, got {i!r}")
+        return int(i)
 
     def log_density(self, x: Tensor) -> Tensor:
         """log p(x | A_m) = max_j [log w_mj + log N(x; mu_j, Sigma_j)] for every step (module docstring).
@@ -359,6 +367,9 @@ class Segmentation:
             M ``Demos``; entry m holds the pieces of step m (in demonstration order, a demonstration that visits
             the step twice gives two pieces), with attractor g_m; velocities and times are the original ones.
         """
+        if not isinstance(demos, Demos):
+            raise InvalidArgumentError(f"demos must be the segmented Demos, got {type(demos).__name__} (build one with "
+                                       "Demos.from_sequences)")
         if demos.n_demos != self.n_sequences:
             raise ShapeMismatchError(f"{demos.n_demos} demonstrations, the segmentation has {self.n_sequences}")
         seg_lengths = torch.tensor([int(lab.shape[0]) for lab in self.labels], device="cpu")
@@ -377,6 +388,10 @@ class Segmentation:
                         p = torch.cat([p, self.attractors[m].to(p).unsqueeze(0)])
                         v = torch.cat([v, torch.zeros_like(v[:1])])
                         t = torch.cat([t, (t[-1] + dt).unsqueeze(0)])
+                    if p.shape[0] < MIN_SAMPLES:  # named here: Demos would only say "demonstration k" of the step
+                        raise TooFewSamplesError(f"its piece of step {m} (samples {a}..{b - 1}) has {p.shape[0]} "
+                                                 f"samples, a piece needs at least {MIN_SAMPLES} (use "
+                                                 "end_at_attractor=True, or longer steps)", i)
                     pos.append(p)
                     vel.append(v)
                     tms.append(t)
@@ -931,8 +946,10 @@ def _check_demos(demos: Demos | Sequence[Tensor], min_len_param: float) -> Demos
     if not isinstance(demos, Demos):
         if isinstance(demos, (str, bytes)) or not isinstance(demos, Sequence) or len(demos) == 0:
             raise InvalidArgumentError(f"demos must be a Demos or a non-empty list of (T_i, d) tensors, got {demos!r}")
-        try:
-            demos = Demos.from_sequences(list(demos))  # typed errors on shape / NaN / too short
+        first = demos[0]
+        dtype = first.dtype if isinstance(first, Tensor) and first.dtype in FLOAT_DTYPES else torch.float64
+        try:  # float32 tensors stay float32, as a float32 Demos does
+            demos = Demos.from_sequences(list(demos), dtype=dtype)  # typed errors on shape / NaN / too short
         except InvalidDemoError as exc:  # same type, the message names the argument
             raise type(exc)(f"demos: {exc.problem}", exc.demo_index) from exc
     for i, n in enumerate(demos.lengths.tolist()):

@@ -387,19 +387,26 @@ class SkillEngine:
         return self._decide(x, route, index)[0]
 
     def _check_progress(self, route: Tensor | None, index: Tensor | None, B: int) -> None:
-        """route (B,) in -1..R-1 and index (B,) in 0..(longest route - 1), integer tensors (or None)."""
+        """route (B,) in -1..R-1 and index (B,) integer tensors (or None); index in 0..len(route) for a row on a
+        route (its length: done, as :class:`Decision` returns it) and in 0..(longest route) for a row on none."""
         from lfd_torch.errors import InvalidIndexError
 
-        for name, t, lo, hi in (("route", route, -1, len(self.routes) - 1),
-                                ("index", index, 0, max(len(r) for r in self.routes) - 1)):  # fmt: skip
+        longest = max(len(r) for r in self.routes)
+        for name, t in (("route", route), ("index", index)):
             if t is None:
                 continue
             if not isinstance(t, Tensor) or t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
                 raise ShapeMismatchError(f"{name} must be a ({B},) integer tensor, got {getattr(t, 'dtype', type(t).__name__)}")
             if t.shape != (B,):
                 raise ShapeMismatchError(f"{name} must have shape ({B},), got {tuple(t.shape)}")
-            if bool(((t < lo) | (t > hi)).any()):
-                raise InvalidIndexError(f"{name} entries must lie in {lo}..{hi}, got {t.tolist()}")
+        if route is not None and bool(((route < -1) | (route >= len(self.routes))).any()):
+            raise InvalidIndexError(f"route entries must lie in -1..{len(self.routes) - 1}, got {route.tolist()}")
+        if index is not None:
+            lengths = torch.tensor([len(r) for r in self.routes] + [longest], device=index.device)
+            hi = lengths[route.to(index.device).long()] if route is not None else lengths[-1].expand(B)  # -1: none
+            if bool(((index < 0) | (index > hi)).any()):
+                raise InvalidIndexError(f"index entries must lie in 0..len(route) (0..{longest} on no route), got "
+                                        f"{index.tolist()} for routes {None if route is None else route.tolist()}")
 
     def _decide(
         self, x: Tensor, route: Tensor | None, index: Tensor | None
