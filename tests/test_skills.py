@@ -162,6 +162,17 @@ def test_an_edited_manifest_is_detected(l_library: SkillLibrary, tmp_path, edit)
         SkillLibrary.load(root)
 
 
+def test_the_manifest_digest_survives_the_json_round_trip() -> None:
+    """The digest is taken of the content as JSON reads it back: integer keys (sorted as numbers before writing,
+    as strings after reading), tuples and NaN give the same digest at save and at load."""
+    from lfd_torch.skills.library import _manifest_digest
+
+    manifest = {"info": {2: 1.0, 10: math.nan, "routes": (1, 2)}, "span": 0.5}
+    digest = _manifest_digest(manifest)
+    back = json.loads(json.dumps({**manifest, "digest": digest}, indent=2, allow_nan=True))
+    assert _manifest_digest(back) == digest
+
+
 @pytest.mark.parametrize("value", ["abc", -1.0, None])
 def test_a_schema_1_manifest_with_a_bad_span_is_a_store_error(l_library: SkillLibrary, tmp_path, value) -> None:
     """Libraries of schema 1 (no manifest digest) are still read, with their values checked."""

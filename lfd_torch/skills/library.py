@@ -394,8 +394,9 @@ class SkillLibrary:
 
 
 def _manifest_digest(manifest: dict) -> str:
-    """SHA-256 of the manifest's content without its own ``digest`` entry (keys sorted, as it is written)."""
-    body = {k: v for k, v in manifest.items() if k != "digest"}
+    """SHA-256 of the manifest's content without its own ``digest`` entry, as JSON reads it back (keys become
+    strings, tuples lists) with the keys sorted, so that the digest at save and at load see the same text."""
+    body = json.loads(json.dumps({k: v for k, v in manifest.items() if k != "digest"}, allow_nan=True))
     return hashlib.sha256(json.dumps(body, sort_keys=True, allow_nan=True).encode()).hexdigest()
 
 
