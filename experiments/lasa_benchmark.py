@@ -52,7 +52,7 @@ from lfd_torch.metrics import cosine_dissimilarity, dtw_distance, swept_area, ve
 from lfd_torch.modulation import Modulation
 from lfd_torch.preprocess import subsample
 from lfd_torch.skills import SkillEngine, SkillLibrary
-from lfd_torch.store import atomic_write, finished_part, prepare_job, write_table
+from lfd_torch.store import atomic_write, finished_part, prepare_job, staged_results, write_table
 from lfd_torch.utils import derive_seed
 from lfd_torch.viz import violin_grid
 
@@ -199,7 +199,8 @@ def write_violins(table: pd.DataFrame, path: Path) -> list[Path]:
 
 @hydra.main(config_path="../conf", config_name="lasa_benchmark", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    result = run(cfg)
+    with staged_results(cfg):  # published outputs replace the old ones together, only when the run succeeds
+        result = run(cfg)
     print(result["summary"].to_string(index=False, float_format=lambda v: f"{v:.3g}"))
 
 

@@ -30,7 +30,7 @@ from omegaconf import DictConfig
 from lfd_torch.data import LASA_NAMES, Demos
 from lfd_torch.metrics import dtw_distance, swept_area, velocity_error
 from lfd_torch.preprocess import Preprocess
-from lfd_torch.store import run_manifest, write_table
+from lfd_torch.store import run_manifest, staged_results, write_table
 from lfd_torch.viz import violin
 
 log = logging.getLogger(__name__)
@@ -118,9 +118,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 @hydra.main(config_path="../conf", config_name="lasa_metrics", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    result = run(cfg)
+    with staged_results(cfg) as final:  # published outputs replace the old ones together, only on success
+        result = run(cfg)
     for path in result["written"]:
-        print(f"wrote {path}")
+        print(f"wrote {final(path)}")
 
 
 if __name__ == "__main__":

@@ -32,7 +32,6 @@ from typing import Any
 import hydra
 import pandas as pd
 import torch
-from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
@@ -42,7 +41,7 @@ from lfd_torch.errors import LfdError
 from lfd_torch.metrics import cosine_dissimilarity, dtw_distance, velocity_error
 from lfd_torch.preprocess import subsample
 from lfd_torch.rollout import rollout
-from lfd_torch.store import run_manifest, write_table
+from lfd_torch.store import prepare_job, run_manifest, staged_results, write_table
 from lfd_torch.utils import derive_seed
 
 log = logging.getLogger(__name__)
@@ -78,13 +77,12 @@ def evaluate(model: StablePrimitive, demos: Demos, rollout_cfg: DictConfig) -> d
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Fit and evaluate every method on ``cfg.data.shape``; returns the table, the fitted models and paths written."""
-    if not isinstance(cfg.seed, int):
-        raise TypeError(f"seed must be an integer, got {cfg.seed!r}")
+    job = prepare_job(cfg)  # an integer seed; publish=true refused in a multirun (the jobs would overwrite it)
     shape = str(cfg.data.shape)
     demos = subsample(instantiate(cfg.data), int(cfg.subsample), keep_last=False)  # plain x[::k], as the protocol
     train_idx, test_idx = list(cfg.train_demos), list(cfg.test_demos)
     splits = {"train": (train_idx, demos[train_idx]), "test": (test_idx, demos[test_idx])}
-    out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(cfg.get("out_dir", "."))
+    out_dir = job.out_dir
     rows: list[dict[str, Any]] = []
     models: dict[str, StablePrimitive] = {}
     written: list[Path] = []
@@ -134,9 +132,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 @hydra.main(config_path="../conf", config_name="lasa_primitives", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    result = run(cfg)
+    with staged_results(cfg) as final:  # published outputs replace the old ones together, only on success
+        result = run(cfg)
     for path in result["written"]:
-        print(f"wrote {path}")
+        print(f"wrote {final(path)}")
 
 
 if __name__ == "__main__":

@@ -50,7 +50,7 @@ from lfd_torch.preprocess.regularize import resample
 from lfd_torch.segmentation import FixedSegmenter, NoSegmenter
 from lfd_torch.skills import SkillEngine, SkillLibrary, random_pushes
 from lfd_torch.skills.plot import plot_entropy, plot_rollout_panels
-from lfd_torch.store import atomic_write, prepare_job, write_table
+from lfd_torch.store import atomic_write, prepare_job, staged_results, write_table
 from lfd_torch.utils import derive_seed
 from lfd_torch.viz.stored import load_demos, save_config, save_demos
 
@@ -380,7 +380,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 @hydra.main(config_path="../conf", config_name="lasa_tasks", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    result = run(cfg)
+    with staged_results(cfg):  # published outputs replace the old ones together, only when the run succeeds
+        result = run(cfg)
     print(result["summary"].to_string(index=False))
 
 

@@ -51,7 +51,7 @@ from lfd_torch.errors import LfdError  # noqa: E402
 from lfd_torch.metrics import dtw_distance, swept_area  # noqa: E402
 from lfd_torch.rollout import rollout  # noqa: E402
 from lfd_torch.skills import SkillEngine, SkillLibrary  # noqa: E402
-from lfd_torch.store import atomic_write, prepare_job, write_table  # noqa: E402
+from lfd_torch.store import atomic_write, prepare_job, staged_results, write_table  # noqa: E402
 from lfd_torch.utils import derive_seed  # noqa: E402
 from lfd_torch.viz.stored import load_demos, save_demos  # noqa: E402
 
@@ -348,10 +348,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 @hydra.main(config_path="../conf", config_name="mnist", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     t0 = time.perf_counter()
-    result = run(cfg)
+    with staged_results(cfg) as final:  # published outputs replace the old ones together, only on success
+        result = run(cfg)
     print(result["summary"].to_string(index=False, float_format=lambda v: f"{v:.3g}"))
     for path in result["written"]:
-        print(f"wrote {path}")
+        print(f"wrote {final(path)}")
     print(f"total {time.perf_counter() - t0:.0f} s")
 
 

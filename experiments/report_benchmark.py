@@ -19,7 +19,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from lasa_benchmark import summary, write_summary, write_violins  # noqa: E402
 
-from lfd_torch.store import PartialSweepWarning, collect, unfinished_jobs  # noqa: E402
+from lfd_torch.errors import StoreError  # noqa: E402
+from lfd_torch.store import PartialSweepWarning, collect, staged_outputs, unfinished_jobs  # noqa: E402
 from lfd_torch.store.paths import project_root  # noqa: E402
 
 
@@ -35,13 +36,23 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)  # fmt: skip
         return 2
     results = Path(project_root()) / "results"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", PartialSweepWarning)
-        table = collect(args.sweep, save_to=results / "tables" / f"{args.name}.parquet")
-    summ = summary(table)
-    written = write_summary(summ, results / "tables", f"{args.name}_summary")
-    written += write_violins(table, results / "figures" / f"{args.name}_violins.png")
-    print(f"{len(table)} rows, {table['shape'].nunique()} shapes -> " + ", ".join(str(p) for p in written))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PartialSweepWarning)
+            table = collect(args.sweep)
+            summ = summary(table) if len(table) else table.iloc[:0]  # computed before anything is written
+            if not len(summ):
+                raise StoreError(f"no finished rows under {args.sweep}: nothing published")
+            with staged_outputs(results) as staging:  # table, summary and violins replace the published ones together
+                written = [staging / "tables" / f"{args.name}.parquet"]
+                collect(args.sweep, save_to=written[0])
+                written += write_summary(summ, staging / "tables", f"{args.name}_summary")
+                written += write_violins(table, staging / "figures" / f"{args.name}_violins.png")
+    except StoreError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"{len(table)} rows, {table['shape'].nunique()} shapes -> {results} (" + ", ".join(
+        str(p.relative_to(staging)) for p in written) + ")")
     return 0
 
 

@@ -56,7 +56,7 @@ from lfd_torch.robot.trials import (
     wilson_interval,
 )
 from lfd_torch.segmentation import Segmentation
-from lfd_torch.store import atomic_write, prepare_job, write_table
+from lfd_torch.store import atomic_write, prepare_job, staged_results, write_table
 from lfd_torch.utils import derive_seed
 from lfd_torch.viz.stored import load_demos, load_state, save_config, save_demos, save_state
 
@@ -474,7 +474,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 @hydra.main(config_path="../conf", config_name="scooping", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    result = run(cfg)
+    with staged_results(cfg):  # published outputs replace the old ones together, only when the run succeeds
+        result = run(cfg)
     print(result["summary"].to_string(index=False))
 
 

@@ -39,7 +39,7 @@ from omegaconf import DictConfig, OmegaConf
 from lfd_torch.data import Demos, load_lasa
 from lfd_torch.segmentation.plot import plot_segmentation
 from lfd_torch.segmentation.synthetic import multi_step_demos
-from lfd_torch.store import atomic_write, run_manifest, write_table
+from lfd_torch.store import atomic_write, run_manifest, staged_results, write_table
 from lfd_torch.utils import derive_seed
 from lfd_torch.viz.stored import save_demos
 
@@ -128,7 +128,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 @hydra.main(config_path="../conf", config_name="segment_lasa", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    result = run(cfg)
+    with staged_results(cfg):  # published outputs replace the old ones together, only when the run succeeds
+        result = run(cfg)
     print(result["table"].to_string(index=False))
 
 

@@ -335,6 +335,18 @@ def test_lasa_primitives_paper_preset_tiny_multirun(tmp_path: Path) -> None:
     assert set(table["shape"]) == {"Angle", "Line"} and len(table) == 2 * 3 * 7
 
 
+def test_lasa_primitives_refuses_to_publish_from_a_multirun(tmp_path: Path) -> None:
+    """Every job of a multirun would overwrite the published table: the run refuses (``prepare_job``), and nothing
+    lands in results/ (the run's root is a temporary LFD_ROOT)."""
+    script = CONF.parent / "experiments" / "lasa_primitives.py"
+    cmd = [sys.executable, str(script), "-m", "data.shape=Line", "seed=0,1", "publish=true", "save_models=false",
+           f"hydra.sweep.dir={tmp_path / 'sweep'}", "hydra/launcher=basic", *FAST]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "LFD_ROOT": str(tmp_path)}
+    proc = subprocess.run(cmd, cwd=CONF.parent, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode != 0 and "multirun" in proc.stderr, proc.stderr[-2000:]
+    assert not list(tmp_path.rglob("lasa_primitives_*.parquet"))  # the published name; jobs write results.parquet
+
+
 def test_report_primitives_summary_and_count(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     """The report averages demos within a seed, then seeds; a shape counts only if both errors are no worse."""
     import pandas as pd

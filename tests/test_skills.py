@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from lfd_torch.data.lasa import load_lasa
-from lfd_torch.ds import fit_lpvds, fit_seds, load_primitive
+from lfd_torch.ds import StablePrimitive, fit_lpvds, fit_seds, load_primitive
 from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError, StoreError
 from lfd_torch.gmm import PCGMMFitter
 from lfd_torch.modulation import Branch, Modulation, modulated_velocity, renyi_entropy
@@ -757,3 +757,30 @@ def test_reproduction_reference_keeps_the_nominal_motion_unmodulated(l_library: 
     assert not bool((out.branches[valid] == int(Branch.SMALL_SCALE)).any())
     with pytest.raises(LookupError):
         SkillLibrary.learn(demos, seg, generator=torch.Generator(), entropy_reference="nope", check=False)
+
+
+def test_an_interrupted_save_keeps_the_library_already_there(l_library: SkillLibrary, tmp_path, monkeypatch) -> None:
+    """The files are staged and moved into place, manifest last: a save that fails while writing (here the second
+    primitive) leaves the library that was in the folder loadable and unchanged, and other files there alone."""
+    root = tmp_path / "lib"
+    l_library.save(root)
+    (root / "demos.pt").write_bytes(b"an experiment's own file")
+    before = {p.name: p.read_bytes() for p in root.iterdir()}
+    original, calls = StablePrimitive.save, []
+
+    def failing(self, path):
+        calls.append(path)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return original(self, path)
+
+    demos, _ = _l_task(seed=1)  # another library (other data), saved over the first one
+    other = SkillLibrary.learn(demos, FixedSegmenter([0.4])(demos), generator=torch.Generator().manual_seed(2))
+    monkeypatch.setattr(StablePrimitive, "save", failing)
+    with pytest.raises(KeyboardInterrupt):
+        other.save(root)
+    monkeypatch.setattr(StablePrimitive, "save", original)
+    assert {p.name: p.read_bytes() for p in root.iterdir()} == before  # no staging folder left either
+    SkillLibrary.load(root)
+    with pytest.raises(StoreError, match="directory"):
+        l_library.save(root / "manifest.json")

@@ -539,3 +539,102 @@ def test_collect_refuses_to_publish_a_partial_sweep(tmp_path):
     write_table([{**row, "trajectory": 1}], sweep / "1" / "results.parquet")
     assert unfinished_jobs(sweep) == []
     assert collect_main([str(sweep), "--out", str(tmp_path / "t2.parquet")]) == 0
+
+
+def _multirun_yaml(sweep, task):
+    """A sweep's multirun.yaml as Hydra's basic sweeper writes it (only the keys ``expected_jobs`` reads)."""
+    sweep.mkdir(parents=True, exist_ok=True)
+    (sweep / "multirun.yaml").write_text(
+        "hydra:\n  sweeper:\n    _target_: hydra._internal.core_plugins.basic_sweeper.BasicSweeper\n"
+        "    params:\n      shape: a,b\n  overrides:\n    task:\n" + "".join(f"    - {t}\n" for t in task))
+
+
+def test_jobs_that_never_started_keep_a_sweep_unfinished(tmp_path):
+    """A sweep killed before some jobs made a folder: its multirun.yaml says how many jobs it launches (command-line
+    sweeps times the preset's sweeper params), so collect --out refuses it and report_benchmark would too."""
+    from lfd_torch.store import write_table
+    from lfd_torch.store.sweep import expected_jobs, main as collect_main, unfinished_jobs
+
+    sweep = tmp_path / "sweep"
+    _multirun_yaml(sweep, ["fold=0,1,2", "budget_s=5"])
+    assert expected_jobs(sweep / "multirun.yaml") == 6  # 3 folds x 2 shapes
+    (sweep / "0" / ".hydra").mkdir(parents=True)
+    (sweep / "0" / ".hydra" / "config.yaml").write_text("seed: 0\n")
+    row = {"experiment": "e", "shape": "s", "method": "m", "fold": 0, "seed": 0, "trajectory": 0, "config_hash": "h",
+           "package_version": "v", "git_sha": "g", "x": 1.0}  # fmt: skip
+    write_table([row], sweep / "0" / "results.parquet")
+    assert unfinished_jobs(sweep) == [sweep / str(k) for k in range(1, 6)]
+    assert collect_main([str(sweep), "--out", str(tmp_path / "t.parquet")]) == 2 and not (tmp_path / "t.parquet").exists()
+    _multirun_yaml(sweep, ["shape=a", "budget_s=5"])  # the command line overrides the preset's params: one job
+    assert expected_jobs(sweep / "multirun.yaml") == 1 and unfinished_jobs(sweep) == []
+
+
+def test_a_published_table_is_never_replaced_by_an_empty_or_mixed_collect(tmp_path):
+    from lfd_torch.store import write_table
+
+    published = tmp_path / "published.parquet"
+    row = {"experiment": "e", "shape": "s", "method": "m", "fold": 0, "seed": 0, "trajectory": 0, "config_hash": "h",
+           "package_version": "v", "git_sha": "g", "x": 1.0}  # fmt: skip
+    write_table([row], published)
+    before = published.read_bytes()
+    (tmp_path / "empty_sweep").mkdir()
+    with pytest.raises(StoreError, match="nothing written"):
+        collect(tmp_path / "empty_sweep", save_to=published)
+    root = tmp_path / "multirun" / "lasa_benchmark"
+    for stamp in ("2026-01-01_10-00-00", "2026-01-02_10-00-00"):  # two unrelated runs of the default sweep dir
+        _multirun_yaml(root / stamp, ["fold=0"])
+        write_table([row], root / stamp / "0" / "results.parquet")
+    with pytest.raises(StoreError, match="holds 2 sweeps"):
+        collect(root, save_to=published)
+    assert published.read_bytes() == before
+    assert len(collect(root / "2026-01-01_10-00-00", save_to=published)) == 1
+
+
+def test_staged_outputs_publish_together_or_not_at_all(tmp_path):
+    """A run's outputs are staged under results/ and replace the published ones only when it succeeds; a failure
+    halfway leaves every published file as it was, and no staging folder."""
+    from omegaconf import OmegaConf
+
+    from lfd_torch.store import staged_outputs, staged_results
+
+    results = tmp_path / "results"
+    (results / "tables").mkdir(parents=True)
+    (results / "figures").mkdir()
+    (results / "tables" / "t.md").write_text("old table\n")
+    (results / "figures" / "f.png").write_text("old figure\n")
+    with pytest.raises(RuntimeError, match="killed halfway"):
+        with staged_outputs(results) as staging:
+            (staging / "figures").mkdir()
+            (staging / "figures" / "f.png").write_text("new figure\n")  # written before the failure
+            raise RuntimeError("killed halfway")
+    assert (results / "figures" / "f.png").read_text() == "old figure\n"
+    assert not list(results.glob(".staging-*"))
+    cfg = OmegaConf.create({"publish": True, "paths": {"root": str(tmp_path), "results": "${paths.root}/results",
+                                                       "tables": "${paths.results}/tables",
+                                                       "figures": "${paths.results}/figures"}})
+    with staged_results(cfg) as final:
+        staged_table = Path(cfg.paths.tables) / "t.md"
+        assert staged_table.parent.parent.name.startswith(".staging-")
+        staged_table.parent.mkdir(parents=True)
+        staged_table.write_text("new table\n")
+        assert (results / "tables" / "t.md").read_text() == "old table\n"  # not yet
+    assert (results / "tables" / "t.md").read_text() == "new table\n" and final(staged_table) == results / "tables" / "t.md"
+    assert cfg.paths.tables == str(results / "tables") and not list(results.glob(".staging-*"))
+    off = OmegaConf.create({"publish": False, "paths": {"results": str(results)}})
+    with staged_results(off) as final:
+        assert cfg.paths.results == str(results) and final("x") == Path("x")
+
+
+def test_report_benchmark_refuses_an_empty_sweep_and_keeps_the_published_table(tmp_path, monkeypatch, capsys):
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+    from report_benchmark import main as report
+
+    monkeypatch.setenv("LFD_ROOT", str(tmp_path))
+    published = tmp_path / "results" / "tables" / "paper.parquet"
+    published.parent.mkdir(parents=True)
+    published.write_bytes(b"the published table")
+    (tmp_path / "empty_sweep").mkdir()
+    assert report([str(tmp_path / "empty_sweep"), "--name", "paper"]) == 2
+    assert published.read_bytes() == b"the published table" and "nothing" in capsys.readouterr().err

@@ -27,6 +27,7 @@ import hashlib
 import json
 import math
 import os
+import shutil
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -283,8 +284,29 @@ class SkillLibrary:
 
     # ------------------------------------------------------------------ persistence
     def save(self, directory: str | os.PathLike[str]) -> Path:
-        """Write the library into ``directory`` (module docstring); returns the manifest path."""
+        """Write the library into ``directory`` (module docstring); returns the manifest path.
+
+        Every file is first written into a hidden staging folder inside ``directory`` and then moved into place by
+        renames, the manifest last: a save that fails or is interrupted while writing leaves a library already
+        there as it was (other files in ``directory`` are kept)."""
         root = check_path(directory, "directory", error=StoreError)
+        stage = root / f".saving-{os.getpid()}"
+        try:
+            root.mkdir(parents=True, exist_ok=True)
+            shutil.rmtree(stage, ignore_errors=True)
+            stage.mkdir()
+        except OSError as exc:  # a file where the directory should be, no permission
+            raise StoreError(f"cannot write the library into directory {root}: {exc}") from exc
+        try:
+            manifest = self._write_files(stage)
+            for name in [*manifest["files"], _MANIFEST]:
+                os.replace(stage / name, root / name)
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
+        return root / _MANIFEST
+
+    def _write_files(self, root: Path) -> dict[str, Any]:
+        """Every file of the library and its manifest into ``root``; returns the manifest."""
         files: dict[str, str] = {}
 
         def put(name: str, obj: Any) -> None:
@@ -323,7 +345,7 @@ class SkillLibrary:
         text = json.dumps(manifest, indent=2, sort_keys=True, allow_nan=True)
         with atomic_path(root / _MANIFEST) as tmp:
             tmp.write_text(text)
-        return root / _MANIFEST
+        return manifest
 
     @classmethod
     def load(

@@ -30,6 +30,7 @@ from lfd_torch.store.manifest import (
     run_manifest,
 )
 from lfd_torch.store.job import JobContext, prepare_job
+from lfd_torch.store.staging import staged_outputs, staged_results
 from lfd_torch.store.sweep import PartialSweepWarning, collect, find_parts, finished_part, unfinished_jobs
 from lfd_torch.store.table import (
     KEY_COLUMNS,
@@ -42,6 +43,8 @@ from lfd_torch.store.table import (
 )
 
 __all__ = [
+    "staged_outputs",
+    "staged_results",
     "JobContext",
     "prepare_job",
     "atomic_path",

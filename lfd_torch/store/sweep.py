@@ -43,7 +43,8 @@ from lfd_torch.store.table import (
     written_at_ns,
 )
 
-__all__ = ["collect", "find_parts", "finished_part", "unfinished_jobs", "PartialSweepWarning", "main"]
+__all__ = ["collect", "expected_jobs", "find_parts", "finished_part", "sweep_files", "unfinished_jobs",
+           "PartialSweepWarning", "main"]
 
 _SUFFIXES = (".parquet", ".csv")
 _ORDER_COLUMNS = ("__written_at_ns", "__part")
@@ -101,13 +102,52 @@ def _save(frame: pd.DataFrame, path: Path) -> None:
         raise StoreError(f"cannot save to {path}: supported suffixes are {list(_SUFFIXES)}")
 
 
+def sweep_files(root: str | os.PathLike[str]) -> list[Path]:
+    """The ``multirun.yaml`` files under ``root``: one per Hydra sweep (a folder that holds several sweeps, e.g.
+    ``multirun/lasa_benchmark`` with one timestamped sweep per run, has several)."""
+    base = Path(root)
+    return sorted(base.glob("**/multirun.yaml")) if base.is_dir() else []
+
+
+def expected_jobs(sweep_file: str | os.PathLike[str]) -> int | None:
+    """The number of jobs a Hydra sweep launches, from its ``multirun.yaml``: the product of the numbers of
+    values of its sweep overrides (command line, and ``hydra.sweeper.params`` where the command line does not set
+    the key), as Hydra's basic sweeper expands them. None when that cannot be read (another sweeper)."""
+    try:
+        import yaml
+        from hydra.core.override_parser.overrides_parser import OverridesParser
+
+        cfg = yaml.safe_load(Path(sweep_file).read_text())
+        hydra = cfg["hydra"]
+        if not str(hydra["sweeper"]["_target_"]).endswith("BasicSweeper"):
+            return None
+        task = [str(o) for o in hydra["overrides"]["task"]]
+        keys = {o.split("=", 1)[0].lstrip("+~") for o in task}
+        params = hydra["sweeper"].get("params") or {}
+        task += [f"{k}={v}" for k, v in params.items() if k not in keys]
+        n = 1
+        for override in OverridesParser.create().parse_overrides(task):
+            if override.is_sweep_override():
+                n *= len(list(override.sweep_string_iterator()))
+        return n
+    except Exception:  # noqa: BLE001 - an unreadable or unusual sweep file: the count is unknown, not an error
+        return None
+
+
 def unfinished_jobs(root: str | os.PathLike[str], pattern: str = "**/*.parquet") -> list[Path]:
-    """Job folders of a Hydra sweep (folders holding ``.hydra/``) in which no results table was written yet: jobs
-    that were killed, failed, or are still running."""
+    """Jobs of a Hydra sweep without a results table yet: job folders (holding ``.hydra/``) in which none was
+    written (killed, failed, or still running), and, when the sweep's ``multirun.yaml`` tells how many jobs it
+    launches and its job folders are numbered (``hydra.sweep.subdir: ${hydra.job.num}``), the folders of jobs that
+    never started."""
     base = Path(root)
     jobs = sorted({p.parent.parent for p in base.glob("**/.hydra/config.yaml")})
     done = {p.resolve() for p in find_parts(base, pattern)} if jobs else set()
-    return [j for j in jobs if not any(str(d).startswith(str(j.resolve()) + os.sep) for d in done)]
+    missing = [j for j in jobs if not any(str(d).startswith(str(j.resolve()) + os.sep) for d in done)]
+    for sweep in sweep_files(base):
+        n = expected_jobs(sweep)
+        if n is not None:
+            missing += [sweep.parent / str(k) for k in range(n) if not (sweep.parent / str(k)).is_dir()]
+    return sorted(set(missing))
 
 
 def finished_part(path: str | os.PathLike[str], manifest: Mapping[str, Any]) -> pd.DataFrame | None:
@@ -150,7 +190,8 @@ def collect(
 
     Raises:
         StoreError: the directory does not exist, or ``save_to`` has an unsupported suffix or cannot be
-            written.
+            written; with ``save_to``, also when no part is readable (a published table is never replaced by an
+            empty one) or the directory holds several sweeps (several ``multirun.yaml``).
 
     Warns:
         PartialSweepWarning: for each part skipped, and once if rows were resolved by recency.
@@ -161,10 +202,17 @@ def collect(
     if bad:
         raise StoreError(f"cannot save to {[str(p) for p in bad]}: supported suffixes are {list(_SUFFIXES)}")
     exclude = {p.resolve() for p in outputs}
+    sweeps = sweep_files(path_or_dir)
+    if outputs and len(sweeps) > 1:  # e.g. multirun/lasa_benchmark, one timestamped sweep per run
+        raise StoreError(f"{path_or_dir} holds {len(sweeps)} sweeps ({', '.join(str(p.parent) for p in sweeps[:3])}"
+                         f"{' ...' if len(sweeps) > 3 else ''}); collect one sweep folder (hydra.sweep.dir)")
     parts = [p for p in find_parts(path_or_dir, pattern) if p.resolve() not in exclude]
     if not parts:
         warnings.warn(f"no results tables match {pattern!r} under {path_or_dir}", PartialSweepWarning, stacklevel=2)
     frames = [frame for frame in (_read_part(p) for p in parts) if frame is not None]
+    if outputs and not frames:  # a published table is never replaced by an empty one
+        raise StoreError(f"no readable results table under {path_or_dir}: nothing written to "
+                         f"{', '.join(str(p) for p in outputs)}")
 
     if frames:
         merged = pd.concat(frames, ignore_index=True, sort=False)
