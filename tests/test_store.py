@@ -638,3 +638,16 @@ def test_report_benchmark_refuses_an_empty_sweep_and_keeps_the_published_table(t
     (tmp_path / "empty_sweep").mkdir()
     assert report([str(tmp_path / "empty_sweep"), "--name", "paper"]) == 2
     assert published.read_bytes() == b"the published table" and "nothing" in capsys.readouterr().err
+
+
+def test_a_part_from_another_commit_is_not_resumed(tmp_path):
+    """Resuming a sweep reuses a job's rows only when they come from the same configuration, seed and commit."""
+    from lfd_torch.store import finished_part, write_table
+
+    row = {"experiment": "e", "shape": "s", "method": "m", "fold": 0, "seed": 0, "trajectory": 0, "config_hash": "h",
+           "package_version": "v", "git_sha": "g1", "x": 1.0}  # fmt: skip
+    manifest = {"config_hash": "h", "seed": 0, "git_sha": "g1", "package_version": "v"}
+    write_table([row], tmp_path / "results.parquet", manifest=manifest)
+    assert finished_part(tmp_path / "results.parquet", manifest) is not None
+    for change in ({"git_sha": "g2"}, {"config_hash": "h2"}, {"seed": 1}):
+        assert finished_part(tmp_path / "results.parquet", {**manifest, **change}) is None

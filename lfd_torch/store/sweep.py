@@ -154,9 +154,10 @@ def finished_part(path: str | os.PathLike[str], manifest: Mapping[str, Any]) -> 
     """The rows of a job that already ran with the same configuration, for resuming a sweep; else None.
 
     A job's part counts as finished when ``path`` is a valid results table (it is written atomically, as the
-    job's last act) whose manifest has the same ``config_hash`` and ``seed`` as ``manifest`` (from
+    job's last act) whose manifest has the same ``config_hash``, ``seed`` and ``git_sha`` as ``manifest`` (from
     :func:`~lfd_torch.store.run_manifest` of the job about to run). A missing, damaged or foreign file, or one from
-    another configuration, is not finished: the job runs and replaces it.
+    another configuration or commit, is not finished: the job runs and replaces it (a sweep resumed after a code
+    change does not mix two versions of the code; a ``-dirty`` tree edited in between is not told apart).
     """
     p = Path(path)
     if not p.is_file():
@@ -166,7 +167,7 @@ def finished_part(path: str | os.PathLike[str], manifest: Mapping[str, Any]) -> 
         frame = read_table(p)
     except StoreError:
         return None
-    if old is None or old.get("config_hash") != manifest.get("config_hash") or old.get("seed") != manifest.get("seed"):
+    if old is None or any(old.get(k) != manifest.get(k) for k in ("config_hash", "seed", "git_sha")):
         return None
     return frame
 
