@@ -105,6 +105,8 @@ def _save(frame: pd.DataFrame, path: Path) -> None:
 def sweep_files(root: str | os.PathLike[str]) -> list[Path]:
     """The ``multirun.yaml`` files under ``root``: one per Hydra sweep (a folder that holds several sweeps, e.g.
     ``multirun/lasa_benchmark`` with one timestamped sweep per run, has several)."""
+    if isinstance(root, bytes) or not isinstance(root, (str, os.PathLike)):
+        return []
     base = Path(root)
     return sorted(base.glob("**/multirun.yaml")) if base.is_dir() else []
 
@@ -203,11 +205,11 @@ def collect(
     if bad:
         raise StoreError(f"cannot save to {[str(p) for p in bad]}: supported suffixes are {list(_SUFFIXES)}")
     exclude = {p.resolve() for p in outputs}
+    parts = [p for p in find_parts(path_or_dir, pattern) if p.resolve() not in exclude]  # checks path_or_dir
     sweeps = sweep_files(path_or_dir)
     if outputs and len(sweeps) > 1:  # e.g. multirun/lasa_benchmark, one timestamped sweep per run
         raise StoreError(f"{path_or_dir} holds {len(sweeps)} sweeps ({', '.join(str(p.parent) for p in sweeps[:3])}"
                          f"{' ...' if len(sweeps) > 3 else ''}); collect one sweep folder (hydra.sweep.dir)")
-    parts = [p for p in find_parts(path_or_dir, pattern) if p.resolve() not in exclude]
     if not parts:
         warnings.warn(f"no results tables match {pattern!r} under {path_or_dir}", PartialSweepWarning, stacklevel=2)
     frames = [frame for frame in (_read_part(p) for p in parts) if frame is not None]
