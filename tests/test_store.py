@@ -545,7 +545,8 @@ def _multirun_yaml(sweep, task):
     """A sweep's multirun.yaml as Hydra's basic sweeper writes it (only the keys ``expected_jobs`` reads)."""
     sweep.mkdir(parents=True, exist_ok=True)
     (sweep / "multirun.yaml").write_text(
-        "hydra:\n  sweeper:\n    _target_: hydra._internal.core_plugins.basic_sweeper.BasicSweeper\n"
+        "hydra:\n  sweep:\n    subdir: ${hydra.job.num}\n"
+        "  sweeper:\n    _target_: hydra._internal.core_plugins.basic_sweeper.BasicSweeper\n"
         "    params:\n      shape: a,b\n  overrides:\n    task:\n" + "".join(f"    - {t}\n" for t in task))
 
 
@@ -567,6 +568,9 @@ def test_jobs_that_never_started_keep_a_sweep_unfinished(tmp_path):
     assert collect_main([str(sweep), "--out", str(tmp_path / "t.parquet")]) == 2 and not (tmp_path / "t.parquet").exists()
     _multirun_yaml(sweep, ["shape=a", "budget_s=5"])  # the command line overrides the preset's params: one job
     assert expected_jobs(sweep / "multirun.yaml") == 1 and unfinished_jobs(sweep) == []
+    text = (sweep / "multirun.yaml").read_text().replace("${hydra.job.num}", "${hydra.job.override_dirname}")
+    (sweep / "multirun.yaml").write_text(text)  # job folders named otherwise: the count is not used
+    assert expected_jobs(sweep / "multirun.yaml") is None
 
 
 def test_a_published_table_is_never_replaced_by_an_empty_or_mixed_collect(tmp_path):

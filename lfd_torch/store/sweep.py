@@ -114,14 +114,16 @@ def sweep_files(root: str | os.PathLike[str]) -> list[Path]:
 def expected_jobs(sweep_file: str | os.PathLike[str]) -> int | None:
     """The number of jobs a Hydra sweep launches, from its ``multirun.yaml``: the product of the numbers of
     values of its sweep overrides (command line, and ``hydra.sweeper.params`` where the command line does not set
-    the key), as Hydra's basic sweeper expands them. None when that cannot be read (another sweeper)."""
+    the key), as Hydra's basic sweeper expands them. None when that cannot be read: another sweeper, or job
+    folders not named by their number (``hydra.sweep.subdir`` other than ``${hydra.job.num}``)."""
     try:
         import yaml
         from hydra.core.override_parser.overrides_parser import OverridesParser
 
         cfg = yaml.safe_load(Path(sweep_file).read_text())
         hydra = cfg["hydra"]
-        if not str(hydra["sweeper"]["_target_"]).endswith("BasicSweeper"):
+        if not str(hydra["sweeper"]["_target_"]).endswith("BasicSweeper") or \
+                str(hydra["sweep"]["subdir"]) != "${hydra.job.num}":
             return None
         task = [str(o) for o in hydra["overrides"]["task"]]
         keys = {o.split("=", 1)[0].lstrip("+~") for o in task}
@@ -140,7 +142,7 @@ def unfinished_jobs(root: str | os.PathLike[str], pattern: str = "**/*.parquet")
     """Jobs of a Hydra sweep without a results table yet: job folders (holding ``.hydra/``) in which none was
     written (killed, failed, or still running), and, when the sweep's ``multirun.yaml`` tells how many jobs it
     launches and its job folders are numbered (``hydra.sweep.subdir: ${hydra.job.num}``), the folders of jobs that
-    never started."""
+    never started (:func:`expected_jobs`)."""
     base = Path(root)
     jobs = sorted({p.parent.parent for p in base.glob("**/.hydra/config.yaml")})
     done = {p.resolve() for p in find_parts(base, pattern)} if jobs else set()
