@@ -695,6 +695,8 @@ def corpus_segmentation(fx: Fixtures) -> list[Case]:
                          kind="type", check=lambda r: None if r == [0, 1] else "wrong steps")  # fmt: skip
     cases.append(Case(g, "type", "split: a list of tensors", lambda: fx.segmentation.split(list(d.sequences())),
                       "error", ("demos",)))
+    cases.append(Case(g, "mismatch", "split: the segmented demonstrations in another order",
+                      lambda: fx.segmentation.split(d[[1, 0]]), "error", ("demonstrations",)))
     g = "Segmentation"
     s = fx.segmentation
     cases += tensor_cases(g, "x", lambda a: s.log_density(a), d.positions[0, :5], single_ok=True, empty_ok=True,

@@ -515,3 +515,25 @@ def test_impedance_step_response_settles_at_random_poses():
         assert np.isfinite(plant.q).all()
         assert np.abs(plant.q - target).max() < 2e-3
         assert np.abs(plant.qd).max() < 0.05
+
+
+def test_plant_set_point_continues_and_float32_limits_pass():
+    """Stepping again without a new command continues the position set-point's ramp at the commanded velocity
+    (it jumped back to the start of the ramp before); joint angles at a limit rounded through float32 pass the
+    limit checks of the arm and the plant."""
+    arm = BaxterArm()
+    plant = BaxterPlant()
+    plant.reset()
+    qd = np.array([0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    plant.set_command(plant.q + plant.control_period * qd, qd)
+    ends = []
+    for _ in range(3):
+        plant.step()
+        ends.append(plant.data.ctrl[0])
+    np.testing.assert_allclose(np.diff(ends), 0.5 * plant.control_period, rtol=1e-9)
+    q32 = arm.upper(torch.float32).double()  # up to 1e-7 rad beyond the float64 limits
+    assert bool((q32 > arm.upper()).any())
+    arm.check_limits(q32)
+    plant.reset(q32.numpy())
+    with pytest.raises(InvalidArgumentError, match="joint limits"):
+        arm.check_limits(arm.upper() + 1e-4)

@@ -669,6 +669,27 @@ def test_bad_input_typed_errors():
         FixedSegmenter([0.5, 0.2])
 
 
+def test_split_checks_it_is_given_the_segmented_demonstrations(tmp_path):
+    """Equal lengths are not enough: split compares each demonstration's first and last sample with those of the
+    segmented one, so the same demonstrations in another order are refused, while a float32 copy is accepted and
+    a file saved before the end points were kept still splits."""
+    from lfd_torch.segmentation.segmentation import Segmentation
+
+    t = torch.linspace(0.0, 1.0, 40, dtype=F64)[:, None]
+    demos = Demos.from_sequences([t * torch.tensor([1.0, 0.5], dtype=F64), t * torch.tensor([0.8, -0.3], dtype=F64)])
+    seg = FixedSegmenter([0.5])(demos)
+    assert seg.endpoints.shape == (2, 2, 2)
+    with pytest.raises(ShapeMismatchError, match=r"demonstrations \[0, 1\]"):
+        seg.split(demos[[1, 0]])
+    assert [d.n_demos for d in seg.split(demos.to(dtype=torch.float32))] == [2, 2]
+    back = Segmentation.load(seg.save(tmp_path / "seg.pt"))
+    assert torch.equal(back.endpoints, seg.endpoints)
+    state = seg.state_dict()
+    del state["endpoints"]
+    legacy = Segmentation.from_state_dict(state)
+    assert legacy.endpoints is None and [d.n_demos for d in legacy.split(demos[[1, 0]])] == [2, 2]
+
+
 def test_segmentation_api_edges_are_typed_errors():
     """A piece too short to be a demonstration of its own (split names the step and the user's demonstration, not
     the piece's index within the step), an index out of range, a list given to ``split``, a 1-D or mismatched plot:

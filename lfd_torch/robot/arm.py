@@ -26,9 +26,12 @@ from lfd_torch.robot.urdf import (
     rpy_to_matrix,
 )
 
-__all__ = ["BaxterArm", "check_joint_tensor", "FRAME_NAMES", "NEUTRAL_POSE"]
+__all__ = ["BaxterArm", "check_joint_tensor", "FRAME_NAMES", "LIMIT_TOLERANCE", "NEUTRAL_POSE"]
 
 N_JOINTS = len(ARM_JOINT_NAMES)
+#: rad beyond a joint limit that the limit checks still accept: angles stored in float32 (a log of a trial) are
+#: the float64 ones rounded by up to 2e-7 rad on Baxter's ranges, and a limit reached exactly must pass both ways.
+LIMIT_TOLERANCE = 1e-6
 FRAME_NAMES: tuple[str, ...] = (ROOT_LINK,) + tuple(j.child for j in BAXTER_LEFT_TABLE) + (TOOL_LINK,)
 # A comfortable pose in front of the robot, away from the limits (rad): spoon pointing down over the table.
 NEUTRAL_POSE: tuple[float, ...] = (0.0, -0.55, 0.0, 1.25, 0.0, 0.85, 0.0)
@@ -134,7 +137,7 @@ class BaxterArm:
         """(7,) :data:`NEUTRAL_POSE` (rad)."""
         return torch.tensor(NEUTRAL_POSE, dtype=dtype, device=device)
 
-    def check_limits(self, q: torch.Tensor, name: str = "q", tol: float = 1e-9) -> torch.Tensor:
+    def check_limits(self, q: torch.Tensor, name: str = "q", tol: float = LIMIT_TOLERANCE) -> torch.Tensor:
         """Validate ``q`` (..., 7) and check ``lower - tol <= q <= upper + tol``.
 
         Raises:
@@ -147,8 +150,8 @@ class BaxterArm:
             j = int(bad.reshape(-1, N_JOINTS).any(0).nonzero()[0])
             worst = q[..., j].reshape(-1)[bad[..., j].reshape(-1)][0].item()
             raise InvalidArgumentError(
-                f"{name} violates the joint limits: {self.joint_names[j]} = {worst:.6g} rad outside "
-                f"[{self._lower[j]:.6g}, {self._upper[j]:.6g}]"
+                f"{name} violates the joint limits: {self.joint_names[j]} = {worst:.9g} rad outside "
+                f"[{self._lower[j]:.9g}, {self._upper[j]:.9g}] (+- {tol:g})"
             )
         return q
 

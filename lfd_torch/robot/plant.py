@@ -7,7 +7,7 @@ Physical model (stated here; plausible values, not identified from a real robot)
 
 * Links are capsules from a joint's origin to the next joint's origin. Masses (kg) are close to the published
   Baxter description: upper shoulder 5.70, lower shoulder 3.23, upper elbow 4.31, lower elbow 2.07, upper forearm
-  2.25, lower forearm 1.61, wrist 0.35, hand 0.19, gripper 0.30, spoon 0.05 (21.0 kg in all). Each centre of mass is
+  2.25, lower forearm 1.61, wrist 0.35, hand 0.19, gripper 0.30, spoon 0.05 (20.06 kg in all). Each centre of mass is
   at the capsule midpoint and the inertia is that of a solid cylinder of the capsule's radius and length about it
   (:func:`cylinder_inertia`), with a floor of 1e-5 kg m^2.
 * Joints: the table's limits as MuJoCo joint ranges (hard limits), rotor armature 0.05 kg m^2 (s0-e1) and 0.01
@@ -35,6 +35,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 import numpy as np
 
 from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError, UnknownNameError
+from lfd_torch.robot.arm import LIMIT_TOLERANCE
 from lfd_torch.robot.urdf import (
     ARM_JOINT_NAMES,
     BAXTER_LEFT_TABLE,
@@ -414,10 +415,10 @@ class BaxterPlant:
         qd = np.zeros(N) if qd is None else real_array(qd, "qd")
         self._check7(q, "q")
         self._check7(qd, "qd")
-        bad = (q < self.lower - 1e-9) | (q > self.upper + 1e-9)
+        bad = (q < self.lower - LIMIT_TOLERANCE) | (q > self.upper + LIMIT_TOLERANCE)
         if bad.any():
             j = int(np.flatnonzero(bad)[0])
-            raise InvalidArgumentError(f"q violates the joint limits: {ARM_JOINT_NAMES[j]} = {q[j]:.6g} rad outside "
+            raise InvalidArgumentError(f"q violates the joint limits: {ARM_JOINT_NAMES[j]} = {q[j]:.9g} rad outside "
                                        f"[{self.lower[j]:.6g}, {self.upper[j]:.6g}]")
         self._mj.mj_resetData(self.model, self.data)
         self.data.qpos[self.qpos_adr] = q
@@ -460,7 +461,12 @@ class BaxterPlant:
 
     def step(self, n_substeps: int | None = None) -> None:
         """Advance ``n_substeps`` physics steps (default one control period) with the current set-point, then
-        update the kinematics so that :meth:`tip_position` and the contacts are those of the new state."""
+        update the kinematics so that :meth:`tip_position` and the contacts are those of the new state.
+
+        With ``interpolate``, the position set-point ramps at the commanded joint velocity over the call's substeps
+        and reaches ``q_d`` of :meth:`set_command` at the last one; a further call without a new command continues
+        the ramp at that velocity (the velocity set-point still commands it), so the position set-point never jumps
+        back."""
         from lfd_torch.utils import check_int
 
         # bound: 10^6 substeps (1000 s of simulated time at the default 1 kHz) keeps one call finite
@@ -471,6 +477,7 @@ class BaxterPlant:
                 self.data.ctrl[:N] = self._setpoint - qd_d * (n - 1 - k) * self.timestep
                 self._mj.mj_step(self.model, self.data)
             self.data.ctrl[:N] = self._setpoint
+            self._setpoint = self._setpoint + qd_d * n * self.timestep  # where a next call without a command ends
         else:
             self._mj.mj_step(self.model, self.data, n)
         self._mj.mj_forward(self.model, self.data)
@@ -561,7 +568,7 @@ class BaxterPlant:
         hold ``q`` as the set-point."""
         q = np.asarray(q, dtype=float)
         self._check7(q, "q")
-        if ((q < self.lower - 1e-9) | (q > self.upper + 1e-9)).any():
+        if ((q < self.lower - LIMIT_TOLERANCE) | (q > self.upper + LIMIT_TOLERANCE)).any():
             raise InvalidArgumentError("q violates the joint limits")
         self.data.qpos[self.qpos_adr] = q
         self.data.qvel[self.dof_adr] = 0.0

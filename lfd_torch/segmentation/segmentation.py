@@ -236,6 +236,8 @@ class Segmentation:
         step_state: (M,) long HMM state of every step (-1 without an HMM).
         sampler: the sampler's result (trace, acceptance), None without an HMM.
         info: free-form diagnostics (timings, strides, noise estimates).
+        endpoints: (N, 2, d) first and last sample of every segmented demonstration, against which :meth:`split`
+            checks the demonstrations it is given (None in files saved before it was kept).
     """
 
     labels: tuple[Tensor, ...]
@@ -250,6 +252,7 @@ class Segmentation:
     step_state: Tensor
     sampler: SamplerResult | None = None
     info: dict[str, Any] = field(default_factory=dict)
+    endpoints: Tensor | None = None
 
     @property
     def n_steps(self) -> int:
@@ -375,6 +378,14 @@ class Segmentation:
         seg_lengths = torch.tensor([int(lab.shape[0]) for lab in self.labels], device="cpu")
         if not torch.equal(demos.lengths.cpu(), seg_lengths):
             raise ShapeMismatchError("demonstration lengths differ from the segmented ones")
+        if self.endpoints is not None:  # the same demonstrations in the same order (equal lengths are not enough)
+            given = _endpoints(demos).to(torch.float64).cpu()
+            kept = self.endpoints.to(torch.float64).cpu()
+            scale = float(kept.abs().max()) + 1e-12
+            off = ((given - kept).abs().amax((1, 2)) > 1e-5 * scale).nonzero().view(-1).tolist()
+            if off:
+                raise ShapeMismatchError(f"demonstrations {off} do not start and end where the segmented ones do "
+                                         "(other data, or another order)")
         out = []
         for m in range(self.n_steps):
             pos, vel, tms = [], [], []
@@ -418,6 +429,7 @@ class Segmentation:
             "space_weights": self.space_weights.cpu(),
             "states": [t.cpu() for t in self.states],
             "step_state": self.step_state.cpu(),
+            **({} if self.endpoints is None else {"endpoints": self.endpoints.cpu()}),
         }
 
     @classmethod
@@ -426,12 +438,18 @@ class Segmentation:
         if not isinstance(state, dict) or state.get("schema_version") != SCHEMA_VERSION:
             got = state.get("schema_version") if isinstance(state, dict) else type(state).__name__
             raise StoreError(f"segmentation schema {got!r}, expected {SCHEMA_VERSION}")
+        ends = state.get("endpoints")  # absent in files saved before it was kept
+        if ends is not None and not (isinstance(ends, Tensor) and ends.is_floating_point() and ends.ndim == 3
+                                     and ends.shape[:2] == (len(state.get("labels", ())), 2)):
+            raise StoreError(f"segmentation state: endpoints must be an (N, 2, d) float tensor, got "
+                             f"{getattr(ends, 'shape', type(ends).__name__)}")
         try:
             return cls(
                 labels=tuple(state["labels"]), pieces=tuple(state["pieces"]), attractors=state["attractors"],
                 routes=tuple(tuple(int(m) for m in r) for r in state["routes"]), route_of=state["route_of"],
                 space_mean=state["space_mean"], space_covariance=state["space_covariance"],
                 space_weights=state["space_weights"], states=tuple(state["states"]), step_state=state["step_state"],
+                endpoints=state.get("endpoints"),
             )  # fmt: skip
         except KeyError as exc:
             raise StoreError(f"segmentation state lacks {exc}") from exc
@@ -1001,7 +1019,15 @@ def _assemble(
         step_state=torch.tensor(step_state, dtype=torch.long, device=dev),
         sampler=sampler,
         info=info,
+        endpoints=_endpoints(demos),
     )
+
+
+def _endpoints(demos: Demos) -> Tensor:
+    """(N, 2, d) the first and last valid sample of every demonstration."""
+    last = (demos.lengths - 1).to(demos.positions.device)
+    rows = torch.arange(demos.n_demos, device=demos.positions.device)
+    return torch.stack([demos.positions[:, 0], demos.positions[rows, last]], 1)
 
 
 def _steps_from_bounds(demos: Demos, bounds: list[list[int]], info: dict[str, Any]) -> Segmentation:

@@ -458,4 +458,5 @@ def _segmentation_to(seg: Segmentation, dtype: torch.dtype, device: torch.device
         space_mean=seg.space_mean.to(**f),
         space_covariance=seg.space_covariance.to(**f),
         space_weights=seg.space_weights.to(**f),
+        endpoints=None if seg.endpoints is None else seg.endpoints.to(**f),
     )
