@@ -419,7 +419,7 @@ class BaxterPlant:
         if bad.any():
             j = int(np.flatnonzero(bad)[0])
             raise InvalidArgumentError(f"q violates the joint limits: {ARM_JOINT_NAMES[j]} = {q[j]:.9g} rad outside "
-                                       f"[{self.lower[j]:.6g}, {self.upper[j]:.6g}]")
+                                       f"[{self.lower[j]:.9g}, {self.upper[j]:.9g}] (+- {LIMIT_TOLERANCE:g})")
         self._mj.mj_resetData(self.model, self.data)
         self.data.qpos[self.qpos_adr] = q
         self.data.qvel[self.dof_adr] = qd
