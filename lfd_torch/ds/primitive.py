@@ -214,6 +214,11 @@ class StablePrimitive:
 
         Returns:
             (..., d) velocities (units/s).
+
+        Precision: computed as A_k x - A_k g (A_k g kept), whose relative error near g grows like
+        ||g|| / ||x - g|| times the dtype's epsilon: harmless in float64, but a float32 model of a goal far from
+        the origin (e.g. at 1e4 units) loses its velocities within 0.1 units of it; use float64 there, or put the
+        origin at the goal.
         """
         self._check(x)
         K, d = self.n_components, self.dim

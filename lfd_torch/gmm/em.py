@@ -212,6 +212,10 @@ def fit_em(
         ShapeMismatchError, NonFiniteError: malformed ``x``.
         TooFewSamplesError: fewer samples than components.
         InvalidArgumentError: a hyperparameter of the wrong type or out of range, or no generator.
+
+    Precision: the Lloyd step's distances (``torch.cdist``) are ||a||^2 + ||b||^2 - 2 a.b, which in float32 loses
+    the clusters when the data lie far from the origin relative to their spread (about 1e4 spreads away; a review's
+    one-off check): centre float32 data first, or fit in float64 (every fitter of the package does).
     """
     _check_em_args(x, n_components, n_init=n_init, max_iter=max_iter, tol=tol, reg_covar=reg_covar,
                    kmeans_iter=kmeans_iter, generator=generator)  # fmt: skip

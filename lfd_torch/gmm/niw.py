@@ -144,6 +144,10 @@ def niw_posterior(prior: NIWPrior, counts: Tensor, sums: Tensor, outer: Tensor) 
 
     Returns:
         NIWPrior of shape (..., K): posterior parameters per state (scale symmetrised).
+
+    Precision: the scale is updated from raw moments, which cancel in float32 when the data lie far from the
+    origin relative to their spread; the package's callers (PC-GMM, DAMM, the segmentation sampler) standardise in
+    float64 first, and so should other callers.
     """
     kappa_n = prior.kappa + counts
     dof_n = prior.dof + counts
