@@ -168,7 +168,7 @@ def stale_figures(results: Path, since: float, skipped: tuple[Path, ...] = ()) -
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--only", nargs="+", choices=sorted(GROUPS), help="redraw these groups only")
     args = ap.parse_args(argv)
     results = results_dir()

@@ -268,6 +268,15 @@ def test_stored_config_round_trip_and_tamper(tmp_path):
     path.write_text(path.read_text().replace('"n": 2', '"n": 3'))
     with pytest.raises(StoreError, match="config.json"):
         load_config(path)
+    import json
+
+    from lfd_torch.store.checksum import DIGEST_KEY, payload_digest
+
+    doc = {"config": {"dt": 0.01}, "schema_version": 999}  # a consistent file of another schema
+    doc[DIGEST_KEY] = payload_digest(doc)
+    path.write_text(json.dumps(doc))
+    with pytest.raises(StoreError, match="schema 999"):
+        load_config(path)
 
 
 def test_make_figures_reads_stored_files_and_make_results_recomputes():

@@ -175,4 +175,6 @@ def load_config(path: str | os.PathLike[str]) -> Any:
     if not isinstance(doc, dict) or DIGEST_KEY not in doc or "config" not in doc:
         raise StoreError(f"{path} is not a stored configuration")
     verify_digest(doc, f"stored configuration {path}")
+    if doc.get(_SCHEMA_KEY) != STATE_SCHEMA:  # as load_state: a file of another schema is not read as this one
+        raise StoreError(f"stored configuration {path}: schema {doc.get(_SCHEMA_KEY)!r}, expected {STATE_SCHEMA}")
     return OmegaConf.create(doc["config"])
