@@ -75,17 +75,20 @@ def resolve_device(device: torch.device | str | None, name: str = "device") -> t
     return device
 
 
-def float_dtype(dtype: torch.dtype | str | None, name: str = "dtype") -> torch.dtype | None:
-    """``dtype`` (a torch dtype or its name, None passes through) checked to be one of :data:`FLOAT_DTYPES`.
+def float_dtype(dtype: torch.dtype | str | None, name: str = "dtype", *, allow_none: bool = True,
+                error: type[Exception] | None = None) -> torch.dtype | None:
+    """``dtype`` (a torch dtype or its name; None passes through with ``allow_none``) checked to be one of
+    :data:`FLOAT_DTYPES`.
 
     Raises:
-        UnknownNameError: an unknown dtype name. InvalidArgumentError: another dtype (naming ``name``).
+        UnknownNameError: an unknown dtype name. InvalidArgumentError (or ``error``): another dtype, naming ``name``.
     """
-    if dtype is not None and not isinstance(dtype, (torch.dtype, str)):
-        raise InvalidArgumentError(f"{name} must be torch.float32 or torch.float64 (or its name), got {_show(dtype)}")
+    err = error or InvalidArgumentError
+    if (dtype is None and not allow_none) or (dtype is not None and not isinstance(dtype, (torch.dtype, str))):
+        raise err(f"{name} must be float32 or float64 (a torch dtype or its name), got {_show(dtype)}")
     out = resolve_dtype(dtype)
     if out is not None and out not in FLOAT_DTYPES:
-        raise InvalidArgumentError(f"{name} must be torch.float32 or torch.float64, got {out}")
+        raise err(f"{name} must be float32 or float64, got {out}")
     return out
 
 

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from lfd_torch.data.finite_difference import finite_difference
-from lfd_torch.utils import FLOAT_DTYPES, check_float, resolve_device, resolve_dtype
+from lfd_torch.utils import check_float, float_dtype, resolve_device, resolve_dtype
 from lfd_torch.errors import (
     InvalidIndexError,
     NonFiniteError,
@@ -142,9 +142,7 @@ class Demos:
         """
         if isinstance(positions, (str, bytes)) or not hasattr(positions, "__len__"):
             raise ShapeMismatchError(f"positions must be a list of (T_i, d) arrays, got {type(positions).__name__}")
-        dtype = resolve_dtype(dtype)
-        if dtype not in FLOAT_DTYPES:
-            raise ShapeMismatchError(f"dtype must be float32 or float64, got {dtype}")
+        dtype = float_dtype(dtype, allow_none=False, error=ShapeMismatchError)
         if len(positions) == 0:
             raise TooFewSamplesError("positions is empty: a demonstration set needs at least one demonstration")
         pos = []

@@ -47,7 +47,7 @@ from lfd_torch.errors import (
 from lfd_torch.gmm import GMM, GaussianBank
 from lfd_torch.store import atomic_path
 from lfd_torch.store.checksum import DIGEST_KEY, compact_cpu, payload_digest, verify_digest
-from lfd_torch.utils import FLOAT_DTYPES, check_path, check_tensor, float_dtype, resolve_device, resolve_dtype
+from lfd_torch.utils import check_path, check_tensor, float_dtype, resolve_device
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -276,9 +276,7 @@ class StablePrimitive:
     # ------------------------------------------------------------------ conversion and persistence
     def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> StablePrimitive:
         """A copy with every tensor cast to ``dtype`` (float32 or float64, or its name) and moved to ``device``."""
-        dtype = resolve_dtype(dtype)
-        if dtype is not None and dtype not in FLOAT_DTYPES:
-            raise ShapeMismatchError(f"dtype must be float32 or float64, got {dtype}")
+        dtype = float_dtype(dtype, error=ShapeMismatchError)
         f = dict(dtype=dtype or self.dtype, device=resolve_device(device) or self.device)
         return dataclasses.replace(
             self,

@@ -409,9 +409,7 @@ def load_demonstration(
             time not increasing.
         InvalidArgumentError: joint angles outside the limits; an unknown extension.
     """
-    dtype = float_dtype(dtype)
-    if dtype is None:
-        raise InvalidArgumentError("dtype must be torch.float32 or torch.float64, got None")
+    dtype = float_dtype(dtype, allow_none=False)
     p = Path(path)
     ext = p.suffix.lower()
     if ext not in (".csv", ".npz"):
