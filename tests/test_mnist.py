@@ -302,6 +302,40 @@ def test_stroke_trajectory_units_and_time_law():
     assert np.abs(fd - vel[:, 0])[5:-5].max() < 0.5
 
 
+def test_stroke_trajectory_rests_at_a_cusp():
+    """The pen stops where its path reverses (a sharp return), and only there: the velocity labels are continuous
+    through the return (one movement over it reverses them at full speed) and still the positions' derivative."""
+    out = np.stack([np.linspace(0, 10, 41), np.zeros(41)], 1)
+    back = np.stack([np.linspace(10, 4, 25)[1:], np.zeros(24)], 1)
+    up = np.stack([np.full(24, 4.0), np.linspace(0, 6, 25)[1:]], 1)  # then a right-angle corner: no rest
+    path = np.concatenate([out, back, up])
+    kw = dict(n_points=801, mm_per_pixel=1.0, mean_speed=10.0)
+    pos, t, vel = stroke_trajectory(path, **kw)
+    assert math.isclose(t[-1], 2.2)  # 22 mm at 10 mm/s, as without the rest
+    speed = np.linalg.norm(vel, axis=1)
+    at_cusp = np.linalg.norm(pos - (pos[0] + [10.0, 0.0]), axis=1).argmin()  # the sample nearest the return point
+    assert speed[at_cusp] < 0.01 * speed.max() and math.isclose(t[at_cusp], 1.0, abs_tol=2 * t[1])
+    at_corner = np.linalg.norm(pos - (pos[0] + [4.0, 0.0]), axis=1).argmin()
+    assert speed[at_corner] > 0.3 * speed.max()  # 90 degrees: not a cusp
+    near = slice(at_cusp - 100, at_cusp + 100)  # +-0.27 s; the unrounded corner turns the velocity at once
+    jump = np.linalg.norm(np.diff(vel[near], axis=0), axis=1).max()
+    assert jump < 0.05 * speed.max()  # continuous velocity through the return
+    fd = np.gradient(pos, t, axis=0)
+    idx = np.arange(len(t))
+    away = (np.abs(idx - at_cusp) > 3) & (np.abs(idx - at_corner) > 10)  # a sharp corner blends its tangents
+    assert (np.linalg.norm(fd - vel, axis=1)[away][2:-2] < 0.02 * speed.max()).all()
+    # one movement over the reversal: the labels turn round between two samples at full speed
+    _, _, vel1 = stroke_trajectory(path, cusp_angle=None, **kw)
+    assert np.linalg.norm(np.diff(vel1[near], axis=0), axis=1).max() > 1.5 * np.linalg.norm(vel1, axis=1).max()
+    # the constant law keeps its uniform speed; bad thresholds are typed
+    _, _, vc = stroke_trajectory(path, time_law="constant", **kw)
+    assert np.allclose(np.linalg.norm(vc, axis=1), 10.0)
+    for kw_bad, name in [({"cusp_angle": 0.0}, "cusp_angle"), ({"cusp_angle": 180.0}, "cusp_angle"),
+                         ({"cusp_window": 0.0}, "cusp_window"), ({"cusp_angle": float("nan")}, "cusp_angle")]:  # fmt: skip
+        with pytest.raises(InvalidArgumentError, match=name):
+            stroke_trajectory(path, **kw_bad)
+
+
 # ---------------------------------------------------------------------------------------------- demonstrations
 def test_mnist_demos_from_tiny_files(tiny):
     folder, images, labels = tiny
