@@ -50,7 +50,7 @@ def plot_entropy(library: Any, demos: Any, path: str | Path, *, grid_size: int =
     M = library.n_steps
     cols = min(M, 4)
     rows = math.ceil(M / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.0 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.0 * rows), squeeze=False, layout="constrained")
     for m, skill in enumerate(library.skills):
         ax = axes[m // cols][m % cols]
         h2 = renyi_entropy(skill.primitive, grid.reshape(-1, 2)).reshape(grid_size, grid_size)
@@ -64,7 +64,8 @@ def plot_entropy(library: Any, demos: Any, path: str | Path, *, grid_size: int =
         ax.plot(g[0], g[1], "r*", ms=9)
         ax.set_title(f"step {m + 1}", fontsize=9)
         ax.set_xlabel("x (mm)", fontsize=8)
-        ax.set_ylabel("y (mm)", fontsize=8)
+        if m % cols == 0:  # one y label per row: the panels share the extent
+            ax.set_ylabel("y (mm)", fontsize=8)
         ax.tick_params(labelsize=7)
     for k in range(M, rows * cols):
         axes[k // cols][k % cols].axis("off")
