@@ -503,3 +503,15 @@ def test_effective_bic_formula_and_selection(generator: torch.Generator) -> None
     plain = fit_em_bic(curve, k_range=range(1, 9), generator=torch.Generator().manual_seed(0))
     eff = fit_em_bic(curve, k_range=range(1, 9), generator=torch.Generator().manual_seed(0), n_effective=n_eff)
     assert eff.n_components < plain.n_components
+
+
+def test_kmeans_keeps_clusters_far_from_the_origin_in_float32():
+    """Two clusters 1 apart with spread 0.05, moved 1e4 and 1e5 from the origin: float32 k-means still separates them
+    (distances from the differences; the expanded ||a||^2 + ||b||^2 - 2 a.b lost them at 1e4)."""
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(200, 2, generator=g, dtype=torch.float64) * 0.05
+    x = torch.cat([a[:100], a[100:] + torch.tensor([1.0, 0.0], dtype=torch.float64)])
+    truth = torch.cat([torch.zeros(100), torch.ones(100)]).long()
+    for offset in (1e4, 1e5):
+        labels = kmeans_plus_plus((x + offset).float(), 2, generator=torch.Generator().manual_seed(1))
+        assert torch.equal(labels, truth) or torch.equal(labels, 1 - truth)

@@ -416,3 +416,17 @@ def test_unknown_solver_option_is_a_typed_error_naming_it() -> None:
     with pytest.raises(InvalidArgumentError, match="not_an_option"):
         fit_lpvds(demos, gmm=PCGMMFitter(), generator=torch.Generator().manual_seed(0),
                   solver_options={"CLARABEL": {"not_an_option": 3}})  # fmt: skip
+
+
+def test_float32_velocities_near_a_goal_far_from_the_origin() -> None:
+    """A float32 primitive whose goal is 1e4 units from the origin: f(x) = sum_k gamma_k A_k (x - g) near the goal
+    matches the float64 evaluation of the same float32 inputs to float32 rounding (A_k x - A_k g lost about 10 %)."""
+    g = torch.tensor([1e4, -1e4], dtype=torch.float64)
+    x = g + torch.tensor([[3.0, 1.0], [-2.0, 2.0], [1.0, -3.0], [0.5, 0.5]], dtype=torch.float64)
+    gmm = GMM.from_labels(x, torch.tensor([0, 0, 1, 1]))
+    A = torch.stack([A_QLF, 2.0 * A_QLF])
+    prim = StablePrimitive(gmm, A, g, torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64).expand(2, 2, 2))
+    p32 = prim.to(torch.float32)
+    near = (g + torch.tensor([[0.01, 0.02], [-0.03, 0.01]], dtype=torch.float64)).float()  # within 0.05 of g
+    reference = prim(near.double())  # the same float32 positions, evaluated in float64
+    assert torch.allclose(p32(near).double(), reference, rtol=1e-4, atol=0.0)

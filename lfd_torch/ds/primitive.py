@@ -215,32 +215,29 @@ class StablePrimitive:
         Returns:
             (..., d) velocities (units/s).
 
-        Precision: computed as A_k x - A_k g (A_k g kept), whose relative error near g grows like
-        ||g|| / ||x - g|| times the dtype's epsilon: harmless in float64, but a float32 model of a goal far from
-        the origin (e.g. at 1e4 units) loses its velocities within 0.1 units of it; use float64 there, or put the
-        origin at the goal.
+        Precision: x - g is formed first, so a float32 model of a goal far from the origin keeps its velocities near
+        the goal (``tests/test_lpvds.py::test_float32_velocities_near_a_goal_far_from_the_origin``).
         """
         self._check(x)
         K, d = self.n_components, self.dim
         lead = x.shape[:-1]
         xt = x.reshape(-1, d).T  # (d, N); contiguous for the rollout engine's (N, d) views of (d, N) storage
         n = xt.shape[1]
-        bank, log_pi, A_stack, A_shift = self._feature_major
+        bank, log_pi, A_stack = self._feature_major
         # Feature-major evaluation, (K*d, N) intermediates: reductions over a trailing axis of size d are slow on
         # CPUs. Same numbers as sum_k softmax_k(log pi_k + log N(x; mu_k, Sigma_k)) A_k (x - g).
         logits = bank.log_density_fm(xt).add_(log_pi)  # (K, N)
         gamma = torch.softmax(logits, dim=0)
-        y = torch.mm(A_stack, xt).sub_(A_shift).view(K, d, n)  # A_k (x - g)
+        y = torch.mm(A_stack, xt - self.attractor.unsqueeze(1)).view(K, d, n)  # A_k (x - g)
         out = (y * gamma.unsqueeze(1)).sum(0)  # (d, N)
         return out.T.reshape(*lead, d)
 
     @functools.cached_property
-    def _feature_major(self) -> tuple[GaussianBank, Tensor, Tensor, Tensor]:
-        """Constants of :meth:`__call__`: the GMM's Gaussians as a bank, log pi (K, 1), A (K*d, d), A g (K*d, 1)."""
+    def _feature_major(self) -> tuple[GaussianBank, Tensor, Tensor]:
+        """Constants of :meth:`__call__`: the GMM's Gaussians as a bank, log pi (K, 1), A (K*d, d)."""
         K, d = self.n_components, self.dim
         bank = GaussianBank(self.gmm.means, self.gmm.covariances)
-        A_shift = (self.A @ self.attractor).reshape(K * d, 1)
-        return bank, self.gmm.weights.log().reshape(K, 1), self.A.reshape(K * d, d), A_shift
+        return bank, self.gmm.weights.log().reshape(K, 1), self.A.reshape(K * d, d)
 
     def lyapunov(self, x: Tensor) -> Tensor:
         """V(x) = (x - g)^T P (x - g).

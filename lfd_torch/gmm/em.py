@@ -56,6 +56,13 @@ def _data_scale(x: Tensor) -> Tensor:
     return v if float(v) > 0 else x.new_tensor(1.0)
 
 
+def _nearest(x: Tensor, centers: Tensor) -> Tensor:
+    """(N,) index of the nearest of ``centers`` (K, d) to each of ``x`` (N, d), from the differences themselves: the
+    expansion ||a||^2 + ||b||^2 - 2 a.b that ``torch.cdist`` uses for large inputs cancels in float32 when the data
+    lie far from the origin relative to their spread (about 1e4 spreads away)."""
+    return torch.cdist(x, centers, compute_mode="donot_use_mm_for_euclid_dist").argmin(-1)
+
+
 def kmeans_plus_plus(x: Tensor, n_components: int, *, generator: torch.Generator, n_iter: int = 10) -> Tensor:
     """k-means++ seeding followed by up to ``n_iter`` Lloyd iterations.
 
@@ -84,20 +91,20 @@ def kmeans_plus_plus(x: Tensor, n_components: int, *, generator: torch.Generator
             idx = torch.randint(N, (1,), generator=generator, device=x.device)
         centers = torch.cat([centers, x[idx]])
         d2 = torch.minimum(d2, ((x - x[idx]) ** 2).sum(-1))
-    labels = torch.cdist(x, centers).argmin(-1)
+    labels = _nearest(x, centers)
     for _ in range(n_iter):
         K = centers.shape[0]
         counts = torch.bincount(labels, minlength=K)
         sums = torch.zeros_like(centers).index_add_(0, labels, x)
         # an emptied centre keeps its position
         new = torch.where(counts[:, None] > 0, sums / counts.clamp_min(1)[:, None].to(x.dtype), centers)
-        new_labels = torch.cdist(x, new).argmin(-1)
+        new_labels = _nearest(x, new)
         centers = new
         if torch.equal(new_labels, labels):
             break
         labels = new_labels
     # every centre keeps at least its nearest sample, so all K labels are used
-    nearest = torch.cdist(centers, x).argmin(-1)
+    nearest = _nearest(centers, x)
     labels = labels.clone()
     labels[nearest] = torch.arange(centers.shape[0], device=x.device)
     return labels
@@ -213,9 +220,8 @@ def fit_em(
         TooFewSamplesError: fewer samples than components.
         InvalidArgumentError: a hyperparameter of the wrong type or out of range, or no generator.
 
-    Precision: the Lloyd step's distances (``torch.cdist``) are ||a||^2 + ||b||^2 - 2 a.b, which in float32 loses
-    the clusters when the data lie far from the origin relative to their spread (about 1e4 spreads away; a review's
-    one-off check): centre float32 data first, or fit in float64 (every fitter of the package does).
+    Precision: the Lloyd step's distances are taken from the differences, so float32 data far from the origin keep
+    their clusters (``tests/test_gmm.py::test_kmeans_keeps_clusters_far_from_the_origin_in_float32``).
     """
     _check_em_args(x, n_components, n_init=n_init, max_iter=max_iter, tol=tol, reg_covar=reg_covar,
                    kmeans_iter=kmeans_iter, generator=generator)  # fmt: skip
