@@ -499,6 +499,15 @@ def corpus_loaders(fx: Fixtures) -> list[Case]:
     cases += value_cases(g, "digit", lambda v: mnist_demos(v, directory=tmp), (-1, 10, 2.5, "3", None))
     cases += value_cases(g, "n_demos", lambda v: mnist_demos(3, v, directory=tmp), (0, -1, 2.5, 10**9))
     cases += value_cases(g, "n_points", lambda v: mnist_demos(3, 2, n_points=v, directory=tmp), (0, 2, 2.5, 10**9))
+    from lfd_torch.data import stroke_trajectory
+
+    pen = np.stack([np.r_[np.linspace(0, 10, 41), np.linspace(10, 4, 25)[1:]], np.zeros(65)], 1)  # out and back
+    rests = lambda r: None if np.linalg.norm(r[2], axis=1)[len(r[1]) // 2 - 40: len(r[1]) // 2 + 40].min() < 0.05 \
+        else "no rest at the cusp"  # noqa: E731
+    cases += value_cases(g, "cusp_angle", lambda v: stroke_trajectory(pen, cusp_angle=v),
+                         (0.0, 180.0, -30.0, math.nan, "120"), (120.0, 90.0), check=rests)
+    cases += value_cases(g, "cusp_window", lambda v: stroke_trajectory(pen, cusp_window=v),
+                         (0.0, -1.0, math.nan, math.inf, "1", None), (1.0, 0.5), check=rests)
     return cases
 
 
