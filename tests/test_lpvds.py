@@ -4,6 +4,7 @@ reference program, the P step, certificates, global convergence, typed errors.""
 from __future__ import annotations
 
 import functools
+import math
 import inspect
 import os
 import subprocess
@@ -95,6 +96,10 @@ def test_recovers_linear_system_that_needs_pqlf(generator: torch.Generator) -> N
     P_ref = torch.from_numpy(scipy.linalg.solve_continuous_lyapunov(A_NON_QLF.T.numpy(), -np.eye(2)))
     given_p = fit_lpvds(demos, gmm=gmm, lyapunov=P_ref, ridge=0.0)
     torch.testing.assert_close(given_p.A, A_NON_QLF.expand(2, 2, 2), rtol=0, atol=1e-4)
+    torch.testing.assert_close(given_p.P, P_ref / float(torch.linalg.eigvalsh(P_ref).max()))  # scaled to lambda_max 1
+    # the reported training error is the mean squared velocity error, recomputed here
+    mse = float((qlf(x) - x_dot).pow(2).sum(-1).mean())
+    assert math.isclose(qlf.info["train_mse"], mse, rel_tol=1e-9), (qlf.info["train_mse"], mse)
     # ... and so does the P estimated from the data.
     pqlf = fit_lpvds(demos, gmm=gmm, lyapunov="pqlf", ridge=0.0)
     assert lyapunov_violation_rate(x, x_dot, G, pqlf.P) == 0.0
@@ -430,3 +435,32 @@ def test_float32_velocities_near_a_goal_far_from_the_origin() -> None:
     near = (g + torch.tensor([[0.01, 0.02], [-0.03, 0.01]], dtype=torch.float64)).float()  # within 0.05 of g
     reference = prim(near.double())  # the same float32 positions, evaluated in float64
     assert torch.allclose(p32(near).double(), reference, rtol=1e-4, atol=0.0)
+
+
+def test_residual_velocity_covariances_against_a_loop() -> None:
+    """Each component's covariance of the residual x_dot - A_k (x - g), weighted by gamma_nk and shrunk towards the
+    pooled residual of the full model (prior_weight pseudo-samples), written out sample by sample."""
+    from lfd_torch.ds import residual_velocity_covariances
+
+    g = torch.Generator().manual_seed(5)
+    N, K, d = 40, 3, 2
+    x = torch.randn(N, d, generator=g, dtype=torch.float64)
+    x_dot = torch.randn(N, d, generator=g, dtype=torch.float64)
+    gamma = torch.softmax(torch.randn(N, K, generator=g, dtype=torch.float64), -1)
+    A = torch.randn(K, d, d, generator=g, dtype=torch.float64)
+    goal = torch.tensor([0.3, -0.2], dtype=torch.float64)
+    w = 2.5
+    got = residual_velocity_covariances(gamma, x, x_dot, A, goal, prior_weight=w)
+    pooled = np.zeros((d, d))
+    weighted = np.zeros((K, d, d))
+    for n in range(N):
+        full = np.zeros(d)
+        for k in range(K):
+            r = (x_dot[n] - A[k] @ (x[n] - goal)).numpy()
+            weighted[k] += float(gamma[n, k]) * np.outer(r, r)
+            full += float(gamma[n, k]) * r
+        pooled += np.outer(full, full) / N
+    pooled += 1e-9 * float((x_dot**2).sum(-1).mean()) / d * np.eye(d)
+    mass = gamma.sum(0).numpy()
+    want = np.stack([(weighted[k] + w * pooled) / (mass[k] + w) for k in range(K)])
+    np.testing.assert_allclose(got.numpy(), want, rtol=1e-12, atol=1e-14)

@@ -388,6 +388,20 @@ def test_collect_refuses_keys_shared_by_different_configurations(tmp_path: Path)
         collect(sweep)
 
 
+def test_collect_keeps_the_most_recent_write_after_a_revert(tmp_path: Path) -> None:
+    """The same job written three times, A then B then A again (a setting changed and changed back): the merged
+    table holds A, the last write, even though A's rows equal the first write's."""
+    sweep = tmp_path / "sweep"
+    for part, offset in enumerate((0.0, 1.0, 0.0)):
+        write_table(_rows(seed=0, offset=offset), sweep / str(part) / "results.parquet", manifest=_manifest(0))
+    with pytest.warns(PartialSweepWarning, match="most recent write"):
+        merged = collect(sweep)
+    expected = pd.DataFrame(_rows(seed=0, offset=0.0)).sort_values(list(KEY_COLUMNS))
+    got = merged.sort_values(list(KEY_COLUMNS))
+    assert len(got) == len(expected)
+    np.testing.assert_array_equal(got["E1"].to_numpy(), expected["E1"].to_numpy())
+
+
 def test_collect_merges_a_half_finished_sweep(tmp_path: Path) -> None:
     sweep, expected = _fake_sweep(tmp_path)
     with pytest.warns(PartialSweepWarning) as record:

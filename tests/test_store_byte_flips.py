@@ -144,3 +144,20 @@ def test_flip_positions_cover_the_whole_payload(saved) -> None:
     assert n_payload == nbytes(state)
     with pytest.raises(StoreError, match="not a torch zip"):
         zip_member_spans(path.with_suffix(".missing"))
+
+
+def test_digest_sees_shape_dtype_and_structure() -> None:
+    """Edits that keep the payload bytes but change their meaning change the digest: a reshaped tensor, another
+    dtype of the same bytes, a renamed key, a tensor moved into a nested mapping."""
+    t = torch.arange(6, dtype=torch.float64)
+    base = payload_digest({"a": t, "b": 1})
+    edited = [
+        {"a": t.reshape(2, 3), "b": 1},
+        {"a": t.view(torch.int64), "b": 1},
+        {"c": t, "b": 1},
+        {"a": {"a": t}, "b": 1},
+        {"a": t, "b": "1"},
+    ]
+    digests = [payload_digest(e) for e in edited]
+    assert base not in digests and len(set(digests)) == len(digests)
+    assert payload_digest({"b": 1, "a": t.clone()}) == base  # key order and storage do not matter
