@@ -35,6 +35,7 @@ from lfd_torch.ds import (
 )
 from lfd_torch.errors import (
     CertificationError,
+    InvalidArgumentError,
     NonFiniteError,
     ShapeMismatchError,
     SolverError,
@@ -121,7 +122,7 @@ def test_p_step_properties() -> None:
     assert float(quadratic_margins(A_NON_QLF[None], P)[0]) < 0
     with pytest.raises(TooFewSamplesError):
         estimate_lyapunov_matrix(G[None].expand(5, 2).clone(), torch.ones(5, 2, dtype=torch.float64), G)
-    with pytest.raises(ValueError):
+    with pytest.raises(InvalidArgumentError, match="margin"):
         estimate_lyapunov_matrix(x, x_dot, G, margin=1.5)
 
 
@@ -200,11 +201,11 @@ def test_typed_errors(generator: torch.Generator) -> None:
         fit_lpvds(demos, gmm=GMM.from_labels(torch.cat([x, x], -1), torch.zeros(len(x), dtype=torch.long)))
     with pytest.raises(ShapeMismatchError):
         fit_lpvds(demos, attractor=torch.zeros(3), gmm=gmm)
-    with pytest.raises(ValueError):
+    with pytest.raises(InvalidArgumentError, match="generator"):
         fit_lpvds(demos, gmm=functools.partial(fit_em, n_components=2))  # a fitter needs a generator
     with pytest.raises(CertificationError):
         fit_lpvds(demos, gmm=gmm, lyapunov=torch.tensor([[1.0, 0.0], [0.0, -1.0]], dtype=torch.float64))
-    with pytest.raises(ValueError):
+    with pytest.raises(InvalidArgumentError, match="eps"):
         fit_lpvds(demos, gmm=gmm, eps=0.0)
     bad = x.clone()
     bad[3, 0] = float("nan")

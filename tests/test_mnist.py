@@ -445,3 +445,15 @@ def test_experiment_on_two_shared_digits(tmp_path):
                                                "n_resample=80", "figures=false"])  # fmt: skip
     _check_table(table, [0, 4], 4)
     assert table.groupby("method")["reached"].mean()["framework"] >= 0.75
+
+
+def test_medoid_orientation_flips_the_strokes_against_the_medoid():
+    """Four level strokes, the first drawn the other way: it is the one flipped (against the set's medoid, not
+    against stroke 0), and a stroke that may not be flipped keeps its direction."""
+    from lfd_torch.data.mnist import _medoid_orientation
+
+    t = np.linspace(0.0, 1.0, 50)
+    base = np.stack([10 * t, 3 * np.sin(np.pi * t) + 2 * t], 1)  # an arch, higher at its end
+    paths = [base[::-1].copy()] + [base + [0.2 * k, -0.1 * k] for k in (1, 2, 3)]
+    assert _medoid_orientation(paths, [True] * 4) == [True, False, False, False]
+    assert _medoid_orientation(paths, [False, True, True, True]) == [False] * 4

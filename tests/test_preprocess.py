@@ -137,6 +137,16 @@ def test_screen_dimensions_drops_quiet_dimension(generator):
     assert kept.tolist() == [0, 1] and out.dim == 2 and out.attractor.shape == (2,)
 
 
+def test_screen_dimensions_keeps_a_share_at_the_threshold():
+    """Only shares *below* the threshold are dropped: variances 4, 1, 1 give shares 2/3, 1/6, 1/6 exactly, and a
+    threshold of 1/6 keeps all three (one just above drops the two quiet ones)."""
+    s = np.tile([1.0, -1.0], 20)
+    demos = Demos.from_sequences([np.stack([2.0 * s, s, -s], 1)])
+    assert dimension_shares(demos).tolist() == [4.0 / 6.0, 1.0 / 6.0, 1.0 / 6.0]
+    assert screen_dimensions(demos, 1.0 / 6.0, return_kept=True)[1].tolist() == [0, 1, 2]
+    assert screen_dimensions(demos, np.nextafter(1.0 / 6.0, 1.0), return_kept=True)[1].tolist() == [0]
+
+
 def test_trim_still_tail_matches_loop():
     path = np.concatenate([np.linspace([10.0, 5.0], [0.0, 0.0], 30), np.zeros((20, 2))])
     demos = estimate_velocities(Demos.from_sequences([path, path[:35]], attractor=np.zeros(2)))
@@ -166,6 +176,8 @@ def test_pipeline_runs_on_lasa_and_is_pure():
         {"window": 5, "polyorder": -1}, {"window": 0}, {"window": -3}, {"window": 4}, {"window": 2.5},
         {"subsample_step": 0}, {"subsample_step": -2}, {"n_samples": 2}, {"resample_mode": "fast"},
         {"window": 5, "polyorder": 5}, {"screen_threshold": 1.5}, {"trim_position_tol": -1.0, "trim_velocity_tol": 1.0},
+        {"screen_threshold": "x"}, {"screen_threshold": True}, {"screen_threshold": float("nan")},
+        {"trim_position_tol": "x"},
     ],
 )
 def test_preprocess_checks_its_arguments_at_construction(kwargs) -> None:

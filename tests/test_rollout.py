@@ -457,6 +457,14 @@ def test_divergence_raises_naming_the_step():
     with pytest.raises(NonFiniteError, match="step 7"):
         rollout(nan_at_step, x0.double(), 0.1, 20, check_every=5)
 
+    def finite_then_nan(x, calls=[0]):  # noqa: B006 - huge but finite velocities, NaN from the 6th call (step 5)
+        calls[0] += 1
+        return torch.full_like(x, float("nan") if calls[0] >= 6 else 1e308)
+
+    # the position overflows at step 2 (0 -> 1e308 -> inf), the velocity turns NaN at step 5: the earlier is named
+    with pytest.raises(NonFiniteError, match="non-finite position at step 2"):
+        rollout(finite_then_nan, torch.zeros(1, 2, dtype=torch.float64), 1.0, 20, check_every=10)
+
 
 # ---------------------------------------------------------------------------------------------- performance
 def eager_rollout(field, x0, dt, n_steps, g, p_tol, v_tol):
@@ -508,3 +516,19 @@ def test_positions_at_interpolates_and_holds_the_end() -> None:
             naive[b, q] = res.positions[b, k] + w * (res.positions[b, k1] - res.positions[b, k])
     assert torch.allclose(got, naive, atol=1e-12)
     assert torch.equal(got[:, -1], res.positions[torch.arange(2), res.lengths - 1])
+
+
+def test_stopping_rule_is_strict_at_the_tolerances():
+    """A row stops only *inside* the tolerances (strict inequalities, module docstring): on a still field, a start
+    exactly position_tol from g never stops, one just inside stops at once; likewise for a speed exactly at
+    velocity_tol."""
+    g = torch.zeros(2, dtype=torch.float64)
+    x0 = torch.tensor([[0.5, 0.0], [0.25, 0.0]], dtype=torch.float64)  # |x0 - g| = 0.5 (on the tolerance), 0.25
+    still = rollout(lambda x: 0.0 * x, x0, 0.1, 10, attractor=g, position_tol=0.5, velocity_tol=1.0)
+    assert still.lengths.tolist() == [11, 1] and still.converged.tolist() == [False, True]
+    x_in = torch.tensor([[0.25, 0.0]], dtype=torch.float64)
+    for speed, length in ((0.5, 11), (0.25, 1)):  # a constant velocity exactly at velocity_tol, then inside it
+        v = torch.tensor([speed, 0.0], dtype=torch.float64)
+        moving = rollout(lambda x, v=v: v.expand(x.shape[0], 2), x_in, 1e-12, 10, attractor=g, position_tol=0.5,
+                         velocity_tol=0.5)  # fmt: skip
+        assert moving.lengths.tolist() == [length], speed

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from scipy.stats import multivariate_normal
 
 from lfd_torch.ds import SEDS, SEDSParameters, fit_seds, quadratic_margins
-from lfd_torch.errors import TooFewSamplesError, UnknownNameError
+from lfd_torch.errors import InvalidArgumentError, TooFewSamplesError, UnknownNameError
 from lfd_torch.rollout import rollout
 from test_lpvds import A_QLF, G, linear_demos, starts_on_circle
 from test_primitive_contract import small_lasa
@@ -174,9 +174,9 @@ def test_typed_errors(generator: torch.Generator) -> None:
         fit_seds(demos, objective="cosine", generator=generator)
     with pytest.raises(UnknownNameError):
         fit_seds(demos, k_selection="aic", generator=generator)
-    with pytest.raises(ValueError):
+    with pytest.raises(InvalidArgumentError, match="gain_prior"):
         fit_seds(demos, gain_prior=0.0, generator=generator)
-    with pytest.raises(ValueError):
+    with pytest.raises(InvalidArgumentError, match="eps"):
         fit_seds(demos, eps=-1.0, generator=generator)
     with pytest.raises(TooFewSamplesError):
         fit_seds(demos, n_components=10_000, generator=generator)
@@ -209,3 +209,19 @@ def test_likelihood_fit_that_leaves_the_representable_range_falls_back_instead_o
     model = fit_seds(demos, objective="likelihood", n_components=9, reg=1e-4, generator=g)
     assert model.stability_certificate().certified
     assert torch.isfinite(model(demos.positions[0])).all()
+
+
+def test_gain_penalty_is_the_gaussian_prior() -> None:
+    """The MAP term of gain_prior is -log N(A; -I, gain_prior^2) per entry, up to a constant: differences between
+    two gain sets equal those of scipy's log densities."""
+    from scipy import stats
+
+    from lfd_torch.ds.seds import _gain_penalty
+
+    g = torch.Generator().manual_seed(0)
+    A1, A2 = (torch.randn(3, 2, 2, generator=g, dtype=torch.float64) for _ in range(2))
+    mean = -np.eye(2)
+    for s in (0.5, 10.0):
+        logp = [stats.norm.logpdf(A.numpy(), loc=mean, scale=s).sum() for A in (A1, A2)]
+        got = float(_gain_penalty(A1, torch.from_numpy(mean), s) - _gain_penalty(A2, torch.from_numpy(mean), s))
+        assert math.isclose(got, -(logp[0] - logp[1]), rel_tol=1e-12), (s, got, logp)

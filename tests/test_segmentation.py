@@ -661,11 +661,11 @@ def test_bad_input_typed_errors():
     with pytest.raises(InvalidArgumentError, match="tolerance_correlation"):  # needs run starts: D >= 2 grid points
         segment([torch.randn(1000, 2, generator=g, dtype=F64).cumsum(0)], generator=g, min_length=0.01, max_samples=8,
                 dwell_cue=False, tolerance_correlation=None)
-    with pytest.raises(ValueError):
+    with pytest.raises(InvalidArgumentError, match="stickiness"):
         segment([good], generator=g, stickiness=-1.0)
     with pytest.raises(InvalidArgumentError, match="not_a_parameter"):  # a typo in a Hydra config key
         BPGMHMMSegmenter(not_a_parameter=1)
-    with pytest.raises(ValueError):
+    with pytest.raises(InvalidArgumentError):
         FixedSegmenter([0.5, 0.2])
 
 

@@ -778,3 +778,24 @@ def test_rotation_weight_is_a_probability_below_one():
     for bad in (1.0, -0.1, float("nan")):
         with pytest.raises(InvalidArgumentError, match="rotation_weight"):
             BetaProcessHMMSampler(rotation_weight=bad)
+
+
+def test_dirichlet_rows_log_density_against_scipy() -> None:
+    """Sum over the owned rows j of log Dir(pi_j over the owned features | alpha + kappa delta_j), against
+    scipy.stats.dirichlet, for two feature sets in one batch."""
+    from lfd_torch.segmentation.transitions import dirichlet_log_density_rows
+
+    rng = np.random.default_rng(4)
+    K, alpha, kappa = 5, 0.7, 3.0
+    features = torch.tensor([[True, False, True, True, False], [True, True, True, True, True]])
+    pi = torch.zeros(2, K, K, dtype=torch.float64)
+    want = np.zeros(2)
+    for b in range(2):
+        own = np.flatnonzero(features[b].numpy())
+        for j in own:
+            shape = alpha + kappa * (own == j)
+            row = rng.dirichlet(shape)
+            pi[b, j, own] = torch.from_numpy(row)
+            want[b] += stats.dirichlet.logpdf(row, shape)
+    got = dirichlet_log_density_rows(pi, features, alpha, kappa)
+    np.testing.assert_allclose(got.numpy(), want, rtol=1e-10)

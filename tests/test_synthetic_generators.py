@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from lfd_torch.errors import InvalidArgumentError
 from lfd_torch.segmentation.synthetic import (
     FAMILIES,
     HELD_OUT_FAMILIES,
@@ -156,7 +157,7 @@ def test_scoop_dips_below_its_chord_then_arcs_over():
             assert float(hook[:, 2].min()) < float(min(p[s1, 2], p[s2, 2])) - 0.02  # dips
             assert float(transfer[:, 2].max()) > float(max(p[s2, 2], p[-1, 2])) + 0.1  # arcs over
             assert float(syn.leg_lengths[1]) < float(syn.leg_lengths[2])  # short hook, long arc
-    with pytest.raises(ValueError):
+    with pytest.raises(InvalidArgumentError, match="dim"):
         scoop_steps(torch.Generator().manual_seed(0), dim=2)
 
 
@@ -232,7 +233,7 @@ SLOWING = sorted(SLOWING_FAMILIES)
 def test_slowing_registry_is_the_shapes_with_the_slowing_timing():
     assert SLOWING == sorted(n.replace("_const_", "_slow_") for n in NAMES if "_const_" in n)
     assert not set(SLOWING) & (set(FAMILIES) | set(HELD_OUT_FAMILIES))
-    with pytest.raises(ValueError, match="profile"):
+    with pytest.raises(InvalidArgumentError, match="profile"):
         multi_step_demos(torch.Generator().manual_seed(0), profile="slowing")
 
 

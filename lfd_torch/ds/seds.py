@@ -215,6 +215,13 @@ class SEDSParameters(torch.nn.Module):
         return -torch.logsumexp(self.log_joint_position(xs) + log_v, -1).mean()
 
 
+def _gain_penalty(A: Tensor, prior_mean: Tensor, gain_prior: float, n: int = 1) -> Tensor:
+    """-log N(A; prior_mean, gain_prior^2 I) summed over the entries of A (K, d, d), up to its constant, per sample
+    of ``n``: the MAP term of ``gain_prior`` (prior_mean -I)."""
+    penalty = (A - prior_mean).pow(2).sum()
+    return penalty / (2.0 * gain_prior**2 * n)
+
+
 def _init_parameters(joint: GMM, d: int, eps: float, reg: float) -> SEDSParameters:
     """SEDS parameters from an EM fit of the scaled joint data, projected onto the constraint set."""
     w, mu, S = joint.weights, joint.means, joint.covariances
@@ -377,8 +384,10 @@ def fit_seds(
         prior_mean = -torch.eye(d, **f64)
 
         def loss_fn(xs: Tensor, vs: Tensor) -> Tensor:
-            penalty = (params.system_matrices() - prior_mean).pow(2).sum()
-            return data_loss(xs, vs) + penalty / (2.0 * gain_prior**2 * N)
+            # the penalty's graph first: it fixes the order of the gradient sums, and L-BFGS amplifies a change
+            # of their last bits into another fit
+            penalty = _gain_penalty(params.system_matrices(), prior_mean, gain_prior, N)
+            return data_loss(xs, vs) + penalty
     def make_optimizer(budget: int) -> torch.optim.LBFGS:
         return torch.optim.LBFGS(
             params.parameters(),

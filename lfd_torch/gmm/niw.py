@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import ShapeMismatchError, TooFewSamplesError
+from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError, TooFewSamplesError
 from lfd_torch.gmm.gaussian import gaussian_log_normalizer
 
 __all__ = [
@@ -93,7 +93,7 @@ def niw_prior_from_data(
     Raises:
         ShapeMismatchError: x is not (N, d).
         TooFewSamplesError: N < 2.
-        ValueError: a non-positive hyperparameter.
+        InvalidArgumentError: a non-positive hyperparameter.
     """
     if x.ndim != 2:
         raise ShapeMismatchError(f"x must be (N, d), got {tuple(x.shape)}")
@@ -101,7 +101,8 @@ def niw_prior_from_data(
     if n < 2:
         raise TooFewSamplesError(f"need at least 2 samples to set the prior scale, got {n}")
     if not (covariance_scale > 0 and mean_pseudo_count > 0 and extra_dof > 0):
-        raise ValueError("covariance_scale, mean_pseudo_count and extra_dof must be positive")
+        raise InvalidArgumentError(f"covariance_scale, mean_pseudo_count and extra_dof must be positive, got "
+                                   f"{covariance_scale}, {mean_pseudo_count}, {extra_dof}")
     var = x.var(dim=0, unbiased=True)
     floor = var.max().clamp_min(torch.finfo(x.dtype).tiny) * 1e-6  # a flat axis still gets a proper prior
     var = torch.maximum(var, floor)

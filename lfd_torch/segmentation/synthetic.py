@@ -64,6 +64,7 @@ import torch
 from torch import Tensor
 
 from lfd_torch.data import Demos
+from lfd_torch.errors import InvalidArgumentError
 
 __all__ = [
     "SyntheticSteps",
@@ -131,7 +132,7 @@ def random_waypoints(
         (n_steps + 1, dim) waypoints, first at the origin.
     """
     if n_steps < 1 or dim < 2:
-        raise ValueError("need n_steps >= 1 and dim >= 2")
+        raise InvalidArgumentError("need n_steps >= 1 and dim >= 2")
     device = generator.device
     pts = [torch.zeros(dim, dtype=dtype, device=device)]
     direction = torch.randn(dim, generator=generator, dtype=dtype, device=device)
@@ -189,7 +190,7 @@ def multi_step_demos(
         SyntheticSteps.
     """
     if profile not in ("min_jerk", "constant"):
-        raise ValueError(f"profile must be 'min_jerk' or 'constant', got {profile!r}")
+        raise InvalidArgumentError(f"profile must be 'min_jerk' or 'constant', got {profile!r}")
     if waypoints is None:
         waypoints = random_waypoints(n_steps, dim, generator, dtype=dtype)
     device = generator.device  # the data are drawn on the generator's device
@@ -355,7 +356,7 @@ def _draw_legs(generator: torch.Generator, n_steps: int | None, length_ratio: fl
     """M legs (None: drawn in {3, 4, 5}), their log-uniform arc lengths and the M - 1 corner angles (degrees)."""
     M = _randint(generator, 3, 5) if n_steps is None else n_steps
     if M < 1:
-        raise ValueError(f"need n_steps >= 1, got {M}")
+        raise InvalidArgumentError(f"need n_steps >= 1, got {M}")
     lengths = _log_uniform_lengths(generator, M, length_ratio)
     return M, lengths, [_rand(generator, *turn_deg) for _ in range(M - 1)]
 
@@ -395,9 +396,9 @@ def _render(
         leg_jitter: and each leg's duration by a further factor uniform in [1 - j, 1 + j].
     """
     if profile not in PROFILES:
-        raise ValueError(f"profile must be one of {PROFILES}, got {profile!r}")
+        raise InvalidArgumentError(f"profile must be one of {PROFILES}, got {profile!r}")
     if n_demos < 1:
-        raise ValueError(f"need n_demos >= 1, got {n_demos}")
+        raise InvalidArgumentError(f"need n_demos >= 1, got {n_demos}")
     device, dtype = corners.device, corners.dtype
     M = len(bends)
     lengths = [_leg_length(corners[m], corners[m + 1], bends[m]) for m in range(M)]
@@ -495,7 +496,7 @@ def polyline_steps(
         SyntheticSteps with ``clean``, per-demonstration ``corner_angles`` (B, M - 1) and ``leg_lengths`` (M,).
     """
     if dim < 2:
-        raise ValueError(f"need dim >= 2, got {dim}")
+        raise InvalidArgumentError(f"need dim >= 2, got {dim}")
     M, lengths, turns = _draw_legs(generator, n_steps, length_ratio, turn_deg)
     bends = [_rand(generator, *bend_deg) for _ in range(M)]
     corners, normals, phis = _heading_path(generator, dim, lengths, turns, bends, dtype)
@@ -539,7 +540,7 @@ def out_and_back_steps(
     """
     M = _randint(generator, 3, 4) if n_steps is None else n_steps
     if M not in (3, 4):
-        raise ValueError(f"out_and_back_steps needs n_steps in (3, 4), got {M}")
+        raise InvalidArgumentError(f"out_and_back_steps needs n_steps in (3, 4), got {M}")
     while True:
         lengths = _log_uniform_lengths(generator, M, length_ratio)
         lengths[2] = _rand(generator, *return_fraction) * lengths[1]
@@ -583,9 +584,9 @@ def revisit_steps(
     """
     M = _randint(generator, 3, 4) if n_steps is None else n_steps
     if M not in (3, 4):
-        raise ValueError(f"revisit_steps needs n_steps in (3, 4), got {M}")
+        raise InvalidArgumentError(f"revisit_steps needs n_steps in (3, 4), got {M}")
     if dim < 2:
-        raise ValueError(f"need dim >= 2, got {dim}")
+        raise InvalidArgumentError(f"need dim >= 2, got {dim}")
     device = generator.device
 
     def rot(v: Tensor, deg: float) -> Tensor:
@@ -643,7 +644,7 @@ def scoop_steps(
         Others: see :func:`polyline_steps`.
     """
     if dim != 3:
-        raise ValueError(f"scoop_steps is 3-D, got dim={dim}")
+        raise InvalidArgumentError(f"scoop_steps is 3-D, got dim={dim}")
     device = generator.device
 
     def vec(*v: float) -> Tensor:
@@ -689,11 +690,11 @@ def with_correlated_noise(syn: SyntheticSteps, rho: float, generator: torch.Gene
     from scipy.signal import lfilter
 
     if syn.clean is None:
-        raise ValueError("with_correlated_noise needs the noise-free demonstrations (syn.clean)")
+        raise InvalidArgumentError("with_correlated_noise needs the noise-free demonstrations (syn.clean)")
     if not 0.0 <= rho < 1.0:
-        raise ValueError(f"rho must be in [0, 1), got {rho}")
+        raise InvalidArgumentError(f"rho must be in [0, 1), got {rho}")
     if not (math.isfinite(scale) and scale > 0.0):
-        raise ValueError(f"scale must be a positive number, got {scale}")
+        raise InvalidArgumentError(f"scale must be a positive number, got {scale}")
     level = scale * syn.noise
     sequences = []
     for i, n in enumerate(syn.demos.lengths.tolist()):
@@ -722,9 +723,9 @@ def with_sampling_rate(syn: SyntheticSteps, rate: float, generator: torch.Genera
             demonstration at least 3 samples; generator: the new noise's randomness.
     """
     if syn.clean is None:
-        raise ValueError("with_sampling_rate needs the noise-free demonstrations (syn.clean)")
+        raise InvalidArgumentError("with_sampling_rate needs the noise-free demonstrations (syn.clean)")
     if not (isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0):
-        raise ValueError(f"rate must be a positive number of Hz, got {rate!r}")
+        raise InvalidArgumentError(f"rate must be a positive number of Hz, got {rate!r}")
     new_dt = 1.0 / float(rate)
     ratio = float(syn.demos.times[0, 1] - syn.demos.times[0, 0]) / new_dt  # new samples per old sample
     clean_out, sequences = [], []
@@ -732,7 +733,7 @@ def with_sampling_rate(syn: SyntheticSteps, rate: float, generator: torch.Genera
         clean = syn.clean[i, : int(n)]
         m = math.floor((n - 1) * ratio + 1e-9) + 1
         if m < 3:
-            raise ValueError(f"rate {rate} Hz leaves demonstration {i} with {m} samples (at least 3 needed)")
+            raise InvalidArgumentError(f"rate {rate} Hz leaves demonstration {i} with {m} samples (at least 3 needed)")
         where = torch.arange(m, dtype=clean.dtype, device=clean.device) / ratio  # old (fractional) sample index
         j = where.floor().long().clamp(max=int(n) - 2)
         a = (where - j).unsqueeze(-1)
@@ -848,11 +849,11 @@ def rounded_steps(
         SyntheticSteps with ``clean``, ``corner_angles`` (B, M - 1) and ``leg_lengths`` (M,) (the polyline's legs).
     """
     if profile not in ("constant", "varying"):
-        raise ValueError(f"profile must be 'constant' or 'varying', got {profile!r}")
+        raise InvalidArgumentError(f"profile must be 'constant' or 'varying', got {profile!r}")
     if dim < 2 or n_demos < 1:
-        raise ValueError(f"need dim >= 2 and n_demos >= 1, got {dim}, {n_demos}")
+        raise InvalidArgumentError(f"need dim >= 2 and n_demos >= 1, got {dim}, {n_demos}")
     if not 0.0 <= fillet[0] <= fillet[1] < 0.5:
-        raise ValueError(f"fillet must be a range within [0, 0.5), got {fillet}")
+        raise InvalidArgumentError(f"fillet must be a range within [0, 0.5), got {fillet}")
     device = generator.device
     M, lengths, turns = _draw_legs(generator, n_steps, length_ratio, turn_deg)
     corners, normals, bends = _heading_path(generator, dim, lengths, turns, [0.0] * M, dtype)
