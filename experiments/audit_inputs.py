@@ -499,6 +499,7 @@ def corpus_loaders(fx: Fixtures) -> list[Case]:
     cases += value_cases(g, "digit", lambda v: mnist_demos(v, directory=tmp), (-1, 10, 2.5, "3", None))
     cases += value_cases(g, "n_demos", lambda v: mnist_demos(3, v, directory=tmp), (0, -1, 2.5, 10**9))
     cases += value_cases(g, "n_points", lambda v: mnist_demos(3, 2, n_points=v, directory=tmp), (0, 2, 2.5, 10**9))
+    cases += value_cases(g, "cusp_angle", lambda v: mnist_demos(3, 2, cusp_angle=v, directory=tmp), (0.0, "x"))
     from lfd_torch.data import stroke_trajectory
 
     pen = np.stack([np.r_[np.linspace(0, 10, 41), np.linspace(10, 4, 25)[1:]], np.zeros(65)], 1)  # out and back

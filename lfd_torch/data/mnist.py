@@ -826,6 +826,9 @@ def mnist_demos(
     check_int(n_points, "n_points", low=3, high=MAX_POINTS)
     check_float(mm_per_pixel, "mm_per_pixel", low=0.0, low_open=True)
     check_float(mean_speed, "mean_speed", low=0.0, low_open=True)
+    if cusp_angle is not None:  # checked before any image is read, as stroke_trajectory checks them
+        check_float(cusp_angle, "cusp_angle", low=0.0, high=180.0, low_open=True, high_open=True)
+    check_float(cusp_window, "cusp_window", low=0.0, low_open=True)
     if stroke is not None and not isinstance(stroke, Mapping):
         raise InvalidArgumentError(f"stroke must be a mapping of extract_stroke keyword arguments, got {stroke!r}")
     for name, value in (("min_coverage", min_coverage), ("min_ink_share", min_ink_share)):
