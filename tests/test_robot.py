@@ -4,6 +4,7 @@ plant agreement, gravity compensation, impedance law, DLS velocity map with null
 from __future__ import annotations
 
 import math
+import types
 
 import numpy as np
 import pytest
@@ -531,6 +532,20 @@ def test_plant_set_point_continues_and_float32_limits_pass():
         plant.step()
         ends.append(plant.data.ctrl[0])
     np.testing.assert_allclose(np.diff(ends), 0.5 * plant.control_period, rtol=1e-9)
+    # within one call the set-point ramps at the commanded velocity and reaches q_d at the last substep
+    seen, mujoco = [], plant._mj
+
+    def recording(model, data, *args):
+        seen.append(float(data.ctrl[0]))
+        return mujoco.mj_step(model, data, *args)
+
+    plant._mj = types.SimpleNamespace(mj_step=recording, mj_forward=mujoco.mj_forward)
+    q_d = plant.q + plant.control_period * qd
+    plant.set_command(q_d, qd)
+    plant.step()
+    plant._mj = mujoco
+    assert len(seen) == plant.n_substeps and seen[-1] == pytest.approx(q_d[0], abs=1e-12)
+    np.testing.assert_allclose(np.diff(seen), 0.5 * plant.timestep, rtol=1e-9)
     q32 = arm.upper(torch.float32).double()  # up to 1e-7 rad beyond the float64 limits
     assert bool((q32 > arm.upper()).any())
     arm.check_limits(q32)

@@ -64,6 +64,7 @@ def mm3_one() -> tuple:
 # ---------------------------------------------------------------------------------------------- library
 def test_learn_fits_one_certified_primitive_per_step(l_library: SkillLibrary) -> None:
     lib = l_library
+    l_task_demos = _l_task()[0]
     seg = lib.segmentation
     assert lib.n_steps == seg.n_steps == 2
     for m, s in enumerate(lib.skills):
@@ -72,7 +73,10 @@ def test_learn_fits_one_certified_primitive_per_step(l_library: SkillLibrary) ->
         assert s.primitive.stability_certificate().certified
         # default threshold: the largest H2 over the step's own training states (independent evaluation)
         assert float(s.h2_ref) == pytest.approx(float(renyi_entropy(s.primitive, s.train_positions).max()), rel=1e-12)
-        assert s.speed > 0
+        # the step's own samples, without the appended g_m, and the 0.9 quantile of their speeds (the engine's cap)
+        x, v, _ = seg.split(l_task_demos)[m].samples()
+        assert torch.equal(s.train_positions, x)
+        assert s.speed == pytest.approx(float(v.norm(dim=-1).quantile(0.9)), rel=1e-12)
     assert lib.stability is not None and lib.stability["passed"]
 
 
