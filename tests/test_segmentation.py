@@ -11,9 +11,11 @@ from __future__ import annotations
 import collections
 import functools
 import inspect
+import itertools
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
@@ -1461,3 +1463,30 @@ def test_straight_states_cut_single_demonstrations_of_straight_legs(monkeypatch)
     assert all(ok for ok, *_ in with_straight), with_straight
     affine_only = [found_all(seed, 0.0) for seed in (0, 5)]
     assert not any(ok for ok, *_ in affine_only), affine_only
+
+
+def test_refine_switch_is_the_median_of_a_written_out_change_point_posterior():
+    """_refine_switch against a plain loop over every switch time tau in [lo, hi]: p(tau) proportional to
+    exp(sum_{lo <= t < tau} (ll_a(t) - ll_b(t)) / stride + log_prior(tau)); the switch is the smallest tau with
+    P(<= tau) >= 1/2, and a sample's doubt the probability that it lies on the other side of it."""
+    from lfd_torch.segmentation.segmentation import _refine_switch
+
+    g = torch.Generator().manual_seed(3)
+    T, K, a, b, lo, hi = 40, 3, 2, 0, 7, 31
+    ll = torch.randn(T, K, generator=g, dtype=F64)
+    ll[lo:19, a] += 0.8  # a before about 19, b after
+    ll[19:hi, b] += 0.8
+    for stride, log_prior in ((1, None), (3, None), (2, 0.5 * torch.randn(T + 1, generator=g, dtype=F64))):
+        switch, doubt = _refine_switch(ll, a, b, lo, hi, stride, log_prior)
+        scores = []
+        for tau in range(lo, hi + 1):
+            sc = sum(float(ll[t, a] - ll[t, b]) for t in range(lo, tau)) / stride
+            scores.append(sc + (0.0 if log_prior is None else float(log_prior[tau])))
+        top = max(scores)
+        w = [math.exp(sc - top) for sc in scores]
+        p = [v / sum(w) for v in w]
+        cdf = list(itertools.accumulate(p))
+        want = lo + next(j for j, c in enumerate(cdf) if c >= 0.5)
+        assert switch == want, (stride, switch, want)
+        want_doubt = [cdf[t - lo] if t < want else 1.0 - cdf[t - lo] for t in range(lo, hi)]
+        np.testing.assert_allclose(doubt.numpy(), want_doubt, rtol=1e-9, atol=1e-12)

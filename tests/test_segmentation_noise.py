@@ -212,3 +212,25 @@ def test_noise_free_demonstrations_segment():
                         + t[1:] * torch.tensor([0.0, 1.0], dtype=F64)])  # an exact L, second differences all 0
     assert position_noise([corner]) == 0.0
     assert segment([corner], generator=torch.Generator().manual_seed(0)).n_steps >= 2
+
+
+def test_speed_estimates_remove_the_noise_of_every_axis():
+    """||v||^2 of a noisy velocity is s^2 + d sigma_v^2 on average: the path length's speeds and the direction
+    emission's reliability weights subtract d sigma_v^2, so their squared-speed estimates average s^2 (Monte Carlo,
+    3-D, s = 1, sigma_v = 0.2: 1 within 0.01, where subtracting one sigma_v^2 leaves 1.08)."""
+    from lfd_torch.segmentation.field import field_observations
+    from lfd_torch.segmentation.segmentation import path_length
+
+    g = torch.Generator().manual_seed(0)
+    T, d, sigma = 100_000, 3, 0.2
+    u = torch.randn(T, d, generator=g, dtype=F64)
+    v = u / u.norm(dim=-1, keepdim=True) + sigma * torch.randn(T, d, generator=g, dtype=F64)
+    s = torch.diff(path_length(v, torch.full((T,), sigma, dtype=F64), 1.0), prepend=torch.zeros(1, dtype=F64))
+    assert abs(float(s.square().mean()) - 1.0) < 0.01
+    x = torch.randn(1, T, d, generator=g, dtype=F64)
+    direction_noise = 0.2
+    obs = field_observations(x, v[None], torch.ones(1, T, dtype=torch.bool), velocity_noise=sigma,
+                             direction_noise=direction_noise)  # fmt: skip
+    s0 = sigma / direction_noise
+    signal = obs.w[0] * s0**2 / (1.0 - obs.w[0])  # w = signal / (signal + s0^2)
+    assert abs(float(signal.mean()) - 1.0) < 0.01
