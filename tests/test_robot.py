@@ -412,6 +412,15 @@ def test_dls_respects_velocity_and_position_limits(arm):
     assert qdot[0, 0] == pytest.approx(0.0, abs=1e-12)
     err = lambda qd: ((Jp @ qd[..., None]).squeeze(-1) - v).norm() / v.norm()  # noqa: E731
     assert err(clipped) > 0.1 and err(qdot) < 0.01
+    # half a millirad inside the bound s0 may still move at (lo - q) / dt < 0: the re-solve subtracts that fixed
+    # joint's own share of the task velocity from the others'
+    q_near = q_sat.clone()
+    q_near[0, 0] = lo[0] + 5e-4
+    v_far = torch.tensor([[0.0, -0.3, 0.0]], dtype=torch.float64)
+    qdot = bare(q_near, v_far, 0.01)
+    J_near = arm.jacobian(q_near)[:, :3]
+    assert qdot[0, 0] == pytest.approx(-0.05, abs=1e-9)  # the clamped, non-zero velocity
+    assert float(((J_near @ qdot[..., None]).squeeze(-1) - v_far).norm() / v_far.norm()) < 0.01
     # a joint started outside its range is driven back
     q_out = arm.neutral()[None].clone()
     q_out[0, 3] = -0.2  # e1 lower limit -0.05

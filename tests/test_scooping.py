@@ -291,6 +291,22 @@ def test_controller_caps_the_gain_and_realises_the_task(task, robot):
     r = (x - ctl.engine.goals[c.decision.step]).norm(dim=-1)
     assert bool((c.v.norm(dim=-1) <= ctl.max_gain * r + 1e-12).all())
     assert bool((c.w.norm(dim=-1) <= ctl.max_angular_speed + 1e-12).all())
+    # v is the engine's velocity, scaled down to max_gain x the distance to the step's goal only where faster
+    v_engine = ctl.engine.step_batch(x, route, index)[0]
+    cap = (ctl.max_gain * r / v_engine.norm(dim=-1)).clamp(max=1.0)
+    torch.testing.assert_close(c.v, v_engine * cap[:, None], rtol=1e-12, atol=1e-12)
+    # w turns the spoon towards the demonstrated orientation: R' = exp([w] dt) R is closer to it than R
+    r_des = ctl.orientation.rotations[ctl.orientation.nearest(x, c.decision.step)].to(R)
+
+    def angle(a, b):
+        return torch.arccos((((a.transpose(1, 2) @ b).diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1, 1))
+
+    skew = torch.zeros(3, 3, 3, dtype=R.dtype)
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -c.w[:, 2], c.w[:, 1], -c.w[:, 0]
+    skew = skew - skew.transpose(1, 2)
+    turned = torch.linalg.matrix_exp(1e-3 * skew) @ R
+    moving = c.w.norm(dim=-1) > 1e-9
+    assert bool(moving.any()) and bool((angle(turned, r_des) < angle(R, r_des))[moving].all())
     # the 6-D DLS task is realised up to the damping: J qdot ~ [v; w]
     J = robot.arm.jacobian(q0)
     got = (J @ c.qdot[..., None]).squeeze(-1)
