@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import itertools
 import json
 import math
 
@@ -748,6 +749,31 @@ def test_assign_steps_is_monotone_and_follows_the_segmentation(l_library: SkillL
     half = demos.positions[:, : int(demos.lengths.min()) // 2 - 5]
     _, steps_half = eng.assign_steps(half)
     assert float((steps_half == 0).double().mean()) >= 0.95
+
+
+def test_assign_steps_is_the_best_left_to_right_path() -> None:
+    """On short trajectories the assignment is the left-to-right path (start at the route's first step, stay or
+    move one step on, no skips, end anywhere) of the largest sum of log p(x_t | A_m), found by enumerating every
+    such path."""
+    demos, seg = _l_task()
+    eng = SkillEngine(SkillLibrary.learn(demos, seg, generator=torch.Generator().manual_seed(1), check=False), "full")
+    g = torch.Generator().manual_seed(4)
+    T = 9
+    idx = torch.sort(torch.randint(0, int(demos.lengths[0]), (3, T), generator=g), -1).values
+    x = demos.positions[0][idx] + 0.05 * torch.randn(3, T, demos.dim, generator=g, dtype=F64)
+    route, steps = eng.assign_steps(x)
+    ld = eng.log_density(x.reshape(-1, demos.dim)).view(3, T, -1)
+    for b in range(3):
+        r = eng.routes[int(route[b])]
+        best, best_path = -math.inf, None
+        for moves in itertools.product((0, 1), repeat=T - 1):
+            pos = [0, *itertools.accumulate(moves)]
+            if pos[-1] >= len(r):
+                continue
+            score = sum(float(ld[b, t, r[p]]) for t, p in enumerate(pos))
+            if score > best:
+                best, best_path = score, [r[p] for p in pos]
+        assert steps[b].tolist() == best_path, (b, steps[b].tolist(), best_path)
 
 
 def test_reproduction_reference_keeps_the_nominal_motion_unmodulated(l_library: SkillLibrary) -> None:
