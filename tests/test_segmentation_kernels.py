@@ -126,6 +126,11 @@ def test_transition_posterior_mean(generator):
     assert (pi[:, :, 1] == 0).all() and (pi[:, 1, :] == 0).all()
     # weights outside the owned block keep their prior Gamma(alpha + kappa delta) law
     assert float(eta[:, 1, 1].mean()) == pytest.approx(4.0, rel=0.05)
+    # the owned rows' totals are independent of the data: Gamma(sum_k alpha + kappa delta_jk) over the block, here
+    # Gamma(2 + 3) for both rows whatever their counts (KS test against scipy)
+    for j in (0, 2):
+        total = eta[:, j, [0, 2]].sum(-1).numpy()
+        assert stats.kstest(total, stats.gamma(5.0).cdf).pvalue > 1e-3, j
 
 
 def test_transition_counts_respect_lengths():

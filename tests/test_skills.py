@@ -6,6 +6,7 @@ import functools
 import itertools
 import json
 import math
+import types
 
 import pytest
 import torch
@@ -814,3 +815,13 @@ def test_an_interrupted_save_keeps_the_library_already_there(l_library: SkillLib
     SkillLibrary.load(root)
     with pytest.raises(StoreError, match="directory"):
         l_library.save(root / "manifest.json")
+
+
+def test_first_route_takes_the_first_of_tied_routes() -> None:
+    """Routes that begin with the same step tie exactly at every x: the batched running maximum picks the first of
+    them, as choose_route's argmax does (torch.argmax returns the first maximum)."""
+    stub = types.SimpleNamespace(_first=torch.tensor([1, 0, 1, 2, 0]))  # routes 0/2 and 1/4 share their first step
+    ld = torch.randn(3, 64, generator=torch.Generator().manual_seed(0), dtype=F64)  # (M, B)
+    got = SkillEngine._first_route_fm(stub, ld)
+    want = ld.T[:, stub._first].argmax(-1)
+    assert torch.equal(got, want) and set(got.tolist()) <= {0, 1, 3}
