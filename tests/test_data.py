@@ -187,3 +187,21 @@ def test_demos_refuse_zero_dimensional_states() -> None:
 
     with pytest.raises(ShapeMismatchError, match="d = 0"):
         Demos.from_sequences([torch.zeros(5, 0, dtype=torch.float64)])
+
+
+def test_demos_boundaries_of_lengths_indices_and_timing() -> None:
+    """Three samples are enough and two are not; demos[-n] is the first and -n - 1 is out of range (also in a list);
+    durations run from the first to the last valid sample and dt is the median step (uneven steps)."""
+    from lfd_torch.errors import InvalidIndexError, TooFewSamplesError
+
+    seqs = [np.zeros((3, 2)) + np.arange(3)[:, None], np.zeros((5, 2)) + np.arange(5)[:, None]]
+    times = [np.array([0.0, 0.1, 0.3]), np.array([0.0, 0.1, 0.2, 0.3, 1.0])]
+    demos = Demos.from_sequences(seqs, times=times)
+    with pytest.raises(TooFewSamplesError):
+        Demos.from_sequences([np.zeros((2, 2)) + np.arange(2)[:, None]])
+    assert demos.durations.tolist() == pytest.approx([0.3, 1.0])
+    assert demos.dt.tolist() == pytest.approx([0.1, 0.1])  # (lower) medians of (0.1, 0.2) and (0.1, 0.1, 0.1, 0.7)
+    assert torch.equal(demos[-2].positions, demos[0].positions)
+    for bad in (-3, [-3], [0, -3]):
+        with pytest.raises(InvalidIndexError):
+            demos[bad]

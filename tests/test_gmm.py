@@ -533,3 +533,17 @@ def test_kmeans_keeps_clusters_far_from_the_origin_in_float32():
     for offset in (1e4, 1e5):
         labels = kmeans_plus_plus((x + offset).float(), 2, generator=torch.Generator().manual_seed(1))
         assert torch.equal(labels, truth) or torch.equal(labels, 1 - truth)
+
+
+def test_niw_prior_from_data_expects_a_share_of_the_data_variance() -> None:
+    """E[Sigma] = scale / (dof - d - 1) of the prior is covariance_scale x the data's unbiased per-axis variance
+    (numpy, ddof=1); a flat axis gets 1e-6 of the largest variance; mean, kappa and dof as documented."""
+    x = torch.randn(30, 3, generator=torch.Generator().manual_seed(2), dtype=F64) * torch.tensor([1.0, 3.0, 0.0],
+                                                                                                  dtype=F64)
+    prior = niw_prior_from_data(x, covariance_scale=0.2, mean_pseudo_count=0.5, extra_dof=4.0)
+    var = x.numpy().var(0, ddof=1)
+    var[2] = 1e-6 * var.max()
+    expected_cov = prior.scale / (prior.dof - 3 - 1)
+    np.testing.assert_allclose(expected_cov.numpy(), np.diag(0.2 * var), rtol=1e-12, atol=0)
+    assert float(prior.dof) == 3 + 1 + 4.0 and float(prior.kappa) == 0.5
+    np.testing.assert_allclose(prior.mean.numpy(), x.numpy().mean(0), rtol=1e-12, atol=1e-15)

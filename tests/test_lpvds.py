@@ -465,3 +465,34 @@ def test_residual_velocity_covariances_against_a_loop() -> None:
     mass = gamma.sum(0).numpy()
     want = np.stack([(weighted[k] + w * pooled) / (mass[k] + w) for k in range(K)])
     np.testing.assert_allclose(got.numpy(), want, rtol=1e-12, atol=1e-14)
+
+
+def test_primitive_constructor_checks_and_lyapunov_off_the_origin() -> None:
+    """The constructor's certificate: a non-symmetric or singular / indefinite P, and a margin of exactly 0 (a
+    rotation, A^T + A = 0: V constant, not decreasing) are CertificationErrors; b = -A g; V and dV/dt use x - g
+    (written out, goal away from the origin); the violation rate counts dV/dt = 0 as a violation."""
+    x = torch.tensor([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.5], [0.5, -1.0]], dtype=torch.float64)
+    gmm = GMM.from_labels(x, torch.tensor([0, 0, 1, 1]))
+    g = torch.tensor([0.7, -0.4], dtype=torch.float64)
+    eye, cov = torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64).expand(2, 2, 2)
+    A = torch.stack([A_QLF, 2.0 * A_QLF])
+    P = torch.tensor([[2.0, 0.3], [0.3, 1.0]], dtype=torch.float64)
+    prim = StablePrimitive(gmm, A, g, P, cov)
+    torch.testing.assert_close(prim.b, -(A @ g))
+    y = torch.tensor([[0.2, 1.1], [-0.6, 0.3]], dtype=torch.float64)
+    e = (y - g).numpy()
+    np.testing.assert_allclose(prim.lyapunov(y).numpy(), np.einsum("ni,ij,nj->n", e, P.numpy(), e), rtol=1e-12)
+    np.testing.assert_allclose(prim.lyapunov_derivative(y).numpy(),
+                               2 * np.einsum("ni,ij,nj->n", e, P.numpy(), prim(y).numpy()), rtol=1e-12)  # fmt: skip
+    for bad_P in (torch.tensor([[2.0, 0.3], [0.300001, 1.0]], dtype=torch.float64),  # not symmetric (by 1e-6)
+                  torch.tensor([[1.0, 1.0], [1.0, 1.0]], dtype=torch.float64),  # singular
+                  torch.tensor([[1.0, 2.0], [2.0, 1.0]], dtype=torch.float64)):  # indefinite
+        with pytest.raises(CertificationError, match="P is not"):
+            StablePrimitive(gmm, A, g, bad_P, cov)
+    rotation = torch.tensor([[0.0, 1.0], [-1.0, 0.0]], dtype=torch.float64).expand(2, 2, 2)
+    with pytest.raises(CertificationError, match="all must be < 0"):
+        StablePrimitive(gmm, rotation, g, eye, cov)
+    # dV/dt = 0 (a velocity orthogonal to x - g under P = I, or none at all) is a violation, dV/dt < 0 is not
+    pts = g + torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]], dtype=torch.float64)
+    vel = torch.tensor([[0.0, 1.0], [0.0, 0.0], [-1.0, -1.0]], dtype=torch.float64)
+    assert lyapunov_violation_rate(pts, vel, g, eye) == pytest.approx(2.0 / 3.0)
