@@ -42,3 +42,22 @@ def test_derive_seed_is_stable_and_distinct():
     assert derive_seed("lasa", "Sshape", 0) == reference
     seeds = {derive_seed("lasa", shape, k) for shape in ("Sshape", "Angle") for k in range(5)}
     assert len(seeds) == 10 and all(0 <= s < 2**63 for s in seeds)
+
+
+def test_real_array_and_min_rows_boundaries():
+    """real_array takes signed and unsigned integers as real numbers (not complex or text); check_tensor's min_rows
+    counts the samples of a 1-D tensor by its length."""
+    import numpy as np
+
+    from lfd_torch.errors import ShapeMismatchError, TooFewSamplesError
+    from lfd_torch.utils import check_tensor, real_array
+
+    for arr in (np.array([1, 2], dtype=np.uint8), np.array([-1, 2], dtype=np.int16), [0.5, 1.5]):
+        out = real_array(arr, "q")
+        assert out.dtype == np.float64 and out.tolist() == [float(v) for v in arr]
+    for bad in (np.array([1 + 2j]), np.array(["a"]), torch.tensor([1 + 1j])):
+        with pytest.raises(ShapeMismatchError, match="q"):
+            real_array(bad, "q")
+    check_tensor(torch.zeros(5, dtype=torch.float64), "x", min_rows=3)  # five samples
+    with pytest.raises(TooFewSamplesError, match="x has 2 samples"):
+        check_tensor(torch.zeros(2, dtype=torch.float64), "x", min_rows=3)
