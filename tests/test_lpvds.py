@@ -496,3 +496,15 @@ def test_primitive_constructor_checks_and_lyapunov_off_the_origin() -> None:
     pts = g + torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]], dtype=torch.float64)
     vel = torch.tensor([[0.0, 1.0], [0.0, 0.0], [-1.0, -1.0]], dtype=torch.float64)
     assert lyapunov_violation_rate(pts, vel, g, eye) == pytest.approx(2.0 / 3.0)
+
+
+def test_p_step_keeps_its_eigenvalue_bound() -> None:
+    """min_eigenvalue bounds P's condition: on data whose free optimum has lambda_min / lambda_max = 0.13, a bound
+    of 0.3 or 0.6 is met with equality (the normalised P has largest eigenvalue 1)."""
+    demos = linear_demos(A_NON_QLF, G, starts_on_circle(8))
+    x, x_dot, _ = demos.samples()
+    free = torch.linalg.eigvalsh(estimate_lyapunov_matrix(x, x_dot, G))
+    assert float(free[0]) < 0.2 and float(free[-1]) == pytest.approx(1.0)
+    for bound in (0.3, 0.6):
+        eig = torch.linalg.eigvalsh(estimate_lyapunov_matrix(x, x_dot, G, min_eigenvalue=bound))
+        assert float(eig[0]) == pytest.approx(bound, abs=1e-6) and float(eig[-1]) == pytest.approx(1.0)
