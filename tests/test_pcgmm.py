@@ -327,3 +327,22 @@ def test_fitters_require_a_generator(name) -> None:
     x = torch.randn(50, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     with pytest.raises(InvalidArgumentError, match="generator"):
         getattr(gmm, name)()(x, x, generator=None)
+
+
+def test_merge_small_components_against_a_loop() -> None:
+    """A cluster of exactly min_size points is kept; smaller ones go point by point to the nearest kept mean
+    (written out); labels are renumbered densely in the kept clusters' order; with no cluster large enough the
+    largest (the first of equal ones) is kept."""
+    from lfd_torch.gmm.postprocess import merge_small_components
+
+    x = torch.tensor([[0.0, 0.0], [0.1, 0.0], [0.0, 0.1],  # cluster 0: 3 points (= min_size, kept)
+                      [5.0, 5.0], [5.1, 5.0], [5.0, 5.1], [5.1, 5.1],  # cluster 1: 4 points (kept)
+                      [1.0, 1.0], [4.0, 4.2]], dtype=torch.float64)  # clusters 2 and 3: 1 point each  # fmt: skip
+    labels = torch.tensor([0, 0, 0, 1, 1, 1, 1, 2, 3])
+    out = merge_small_components(x, labels, 3)
+    means = torch.stack([x[:3].mean(0), x[3:7].mean(0)])
+    want = labels.clone()
+    for n in (7, 8):
+        want[n] = int(torch.argmin(((x[n] - means) ** 2).sum(-1)))
+    assert out.tolist() == want.tolist() == [0, 0, 0, 1, 1, 1, 1, 0, 1]
+    assert merge_small_components(x, torch.tensor([2, 2, 0, 0, 1, 1, 3, 3, 3]), 5).tolist() == [0] * 9
