@@ -508,3 +508,42 @@ def test_p_step_keeps_its_eigenvalue_bound() -> None:
     for bound in (0.3, 0.6):
         eig = torch.linalg.eigvalsh(estimate_lyapunov_matrix(x, x_dot, G, min_eigenvalue=bound))
         assert float(eig[0]) == pytest.approx(bound, abs=1e-6) and float(eig[-1]) == pytest.approx(1.0)
+
+
+def test_p_step_against_its_closed_form_when_every_hinge_is_active() -> None:
+    """With a margin so large that psi_i + margin > 0 for every sample and every feasible P, the P step's objective
+    is tr(C P) + margin with C the mean of the normalised sym(e v^T): minimised at eigenvalue 1 on C's negative
+    eigenvector and ``min_eigenvalue`` on the positive one. Samples at rest (below rel_tol) must not enter C;
+    fails with un-normalised features, a margin of the wrong sign or the rest samples kept."""
+    gen = torch.Generator().manual_seed(3)
+    n = 40
+    e = torch.randn(n, 2, generator=gen, dtype=torch.float64) * torch.rand(n, 1, generator=gen, dtype=torch.float64).mul(5).add(0.1)
+    v = e @ A_NON_QLF.T * torch.rand(n, 1, generator=gen, dtype=torch.float64).mul(4).add(0.2)
+    rest_e = torch.tensor([[3.0, 0.0], [0.0, 3.0]], dtype=torch.float64)
+    rest_v = 1e-6 * torch.tensor([[5.0, 5.0], [-5.0, 5.0]], dtype=torch.float64)
+    x = G + torch.cat([e, rest_e])
+    x_dot = torch.cat([v, rest_v])
+    unit = lambda a: a / a.norm(dim=-1, keepdim=True)  # noqa: E731
+    C = (unit(e).unsqueeze(-1) * unit(v).unsqueeze(-2)).mean(0)
+    C = 0.5 * (C + C.T)
+    w, U = torch.linalg.eigh(C)
+    assert float(w[0]) < 0 < float(w[1])
+    for bound in (0.1, 0.5):
+        expected = U @ torch.diag(torch.tensor([1.0, bound], dtype=torch.float64)) @ U.T
+        psi = ((unit(e) @ expected) * unit(v)).sum(-1)
+        assert float(psi.min()) > -0.99  # every hinge active at the closed form, so it is the hinge's optimum
+        P = estimate_lyapunov_matrix(x, x_dot, G, margin=0.99, min_eigenvalue=bound)
+        torch.testing.assert_close(P, expected, rtol=0, atol=2e-4)
+
+
+def test_p_step_needs_as_many_informative_samples_as_free_entries() -> None:
+    """d (d + 1) / 2 = 3 informative samples in 2-D are enough, 2 are not, whatever the samples at rest or at
+    the goal add (they are not informative)."""
+    informative = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]], dtype=torch.float64)
+    moving = -informative @ torch.tensor([[1.0, 0.2], [-0.3, 1.0]], dtype=torch.float64).T
+    idle_x = G + torch.tensor([[2.0, 0.0], [0.0, 0.0], [0.0, -2.0]], dtype=torch.float64)
+    idle_v = torch.tensor([[0.0, 0.0], [-1.0, 0.0], [0.0, 1e-9]], dtype=torch.float64)
+    P = estimate_lyapunov_matrix(torch.cat([G + informative, idle_x]), torch.cat([moving, idle_v]), G)
+    assert float(torch.linalg.eigvalsh(P)[0]) > 0
+    with pytest.raises(TooFewSamplesError, match="2 informative"):
+        estimate_lyapunov_matrix(torch.cat([G + informative[:2], idle_x]), torch.cat([moving[:2], idle_v]), G)
