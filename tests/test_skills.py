@@ -825,3 +825,27 @@ def test_first_route_takes_the_first_of_tied_routes() -> None:
     got = SkillEngine._first_route_fm(stub, ld)
     want = ld.T[:, stub._first].argmax(-1)
     assert torch.equal(got, want) and set(got.tolist()) <= {0, 1, 3}
+
+
+def test_tree_leaves_break_ties_as_the_engine_does() -> None:
+    """The py_trees leaves on exact ties: ChooseRoute takes the first of the routes whose first subtask spaces are
+    equally likely (as SkillEngine.choose_route), InSubtask counts log p(x|A_m) = log p(x|A_m-) as inside
+    (the engine's own >= other)."""
+    from py_trees.common import Status
+
+    from lfd_torch.skills.tree import ChooseRoute, InSubtask, _Context
+
+    def context(ld: list[float], routes: list[list[int]]) -> _Context:
+        engine = types.SimpleNamespace(routes=routes, tick_probe=lambda x: (ld, [False] * len(ld)))
+        ctx = _Context(engine)  # type: ignore[arg-type]
+        ctx.reset(torch.zeros(2, dtype=F64), -1, 0)
+        return ctx
+
+    for routes in ([[1, 2], [0, 2], [1, 0]], [[0, 2], [1, 2], [1, 0]]):  # route 0 ties with 1 (equal density), 2
+        ctx = context([-1.0, -1.0, -5.0], routes)
+        assert [ChooseRoute(ctx, r).update() for r in range(3)] == [Status.SUCCESS, Status.FAILURE, Status.FAILURE]
+    ctx = context([-1.0, -1.0, -5.0], [[2], [1]])  # no tie: the likelier first space wins
+    assert [ChooseRoute(ctx, r).update() for r in range(2)] == [Status.FAILURE, Status.SUCCESS]
+    ctx = context([-2.0, -2.0, -7.0], [[0, 1, 2]])
+    assert InSubtask(ctx, 0).update() == Status.SUCCESS and ctx.densities[0] == (-2.0, -2.0)
+    assert InSubtask(ctx, 2).update() == Status.FAILURE and ctx.densities[2] == (-7.0, -2.0)
