@@ -346,3 +346,171 @@ def test_merge_small_components_against_a_loop() -> None:
         want[n] = int(torch.argmin(((x[n] - means) ** 2).sum(-1)))
     assert out.tolist() == want.tolist() == [0, 0, 0, 1, 1, 1, 1, 0, 1]
     assert merge_small_components(x, torch.tensor([2, 2, 0, 0, 1, 1, 3, 3, 3]), 5).tolist() == [0] * 9
+
+
+# ---------------------------------------------------------------------------------------------- collapsed scores
+def _damm_prior(d: int, nu0_offset: float = 10.0) -> NIWPrior:
+    """The NIW prior damm_labels builds (standardised coordinates, psi_scale 1)."""
+    nu0 = d + nu0_offset
+    return NIWPrior(torch.zeros(d, dtype=F64), torch.tensor(1.0, dtype=F64), torch.tensor(nu0, dtype=F64),
+                    torch.eye(d, dtype=F64) * (nu0 - d - 1.0))  # fmt: skip
+
+
+def _sphere_quadrature(d: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nodes m (P, d) on the unit sphere and weights (P,) of quadrature for the surface measure (weights sum to
+    area(S^{d-1})): the trapezoid rule on the circle (d = 2), Gauss-Legendre in cos(theta) x trapezoid in phi on
+    S^2 (d = 3)."""
+    if d == 2:
+        th = torch.arange(4000, dtype=F64) * (2 * math.pi / 4000)
+        return torch.stack([th.cos(), th.sin()], -1), torch.full((4000,), 2 * math.pi / 4000, dtype=F64)
+    t, wt = np.polynomial.legendre.leggauss(200)
+    phi = torch.arange(400, dtype=F64) * (2 * math.pi / 400)
+    ct = torch.as_tensor(t, dtype=F64)[:, None].expand(200, 400)
+    st = (1 - ct**2).sqrt()
+    m = torch.stack([st * phi.cos(), st * phi.sin(), ct], -1).reshape(-1, 3)
+    w = (torch.as_tensor(wt, dtype=F64)[:, None] * (2 * math.pi / 400)).expand(200, 400).reshape(-1)
+    return m, w
+
+
+def _vmf_direction_log_marginal(u: torch.Tensor, kappa: float) -> float:
+    """log of the integral over the unit mean m (uniform prior) of prod_i C_d(kappa) exp(kappa m . u_i), by
+    quadrature; C_d(kappa) itself is the reciprocal of the quadrature of exp(kappa m . e_1). Empty u gives 0."""
+    d = u.shape[-1]
+    m, w = _sphere_quadrature(d)
+    log_c = -float(torch.logsumexp(torch.log(w) + kappa * m[:, 0], 0))
+    if u.shape[0] == 0:
+        return 0.0
+    log_area = math.log(float(w.sum()))
+    return u.shape[0] * log_c + float(torch.logsumexp(torch.log(w) + kappa * (m @ u.sum(0)), 0)) - log_area
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_damm_direction_marginal_equals_quadrature_over_the_sphere(d: int) -> None:
+    """_Model.log_marginal minus the NIW position marginal is the vMF direction marginal with a uniform prior on the
+    mean direction, log int prod_i C_d(kappa) exp(kappa m . u_i) dm / area(S^{d-1}) (quadrature over the circle /
+    sphere); samples with zero velocity and groups without directions contribute nothing."""
+    from lfd_torch.gmm.damm import _Model, _Stats
+
+    g = torch.Generator().manual_seed(31 + d)
+    kappa = 2.5
+    y = torch.randn(9, d, generator=g, dtype=F64)
+    v = torch.randn(9, d, generator=g, dtype=F64) + 0.8
+    v[2] = 0.0  # no direction
+    v[7:] = 0.0  # group 2: no directions at all
+    speed = v.norm(dim=-1, keepdim=True)
+    has_dir = speed.squeeze(-1) > 0
+    u = torch.where(speed > 0, v / speed.clamp_min(1e-300), torch.zeros_like(v))
+    labels = torch.tensor([0, 0, 0, 0, 1, 1, 1, 2, 2])
+    prior = _damm_prior(d)
+    model = _Model(0.7, kappa, prior)
+    st = _Stats.of(_Stats.features(y, u, has_dir), labels, 3, d)
+    onehot = torch.nn.functional.one_hot(labels, 3).to(F64)
+    pos = niw_log_marginal_likelihood(prior, *sufficient_statistics(y, onehot))
+    got = model.log_marginal(st) - pos
+    for k in range(3):
+        sel = (labels == k) & has_dir
+        want = _vmf_direction_log_marginal(u[sel], kappa)
+        assert float(got[k]) == pytest.approx(want, abs=1e-8), (k, float(got[k]), want)
+    assert float(got[2]) == 0.0
+
+
+def _crp_log_prob(labels: list[int], alpha: float) -> float:
+    """log CRP probability of a partition (in order of first appearance), by seating the customers one by one."""
+    sizes: dict[int, int] = {}
+    out = 0.0
+    for i, k in enumerate(labels):
+        out += math.log((alpha if k not in sizes else sizes[k]) / (alpha + i))
+        sizes[k] = sizes.get(k, 0) + 1
+    return out
+
+
+def test_damm_log_posterior_differences_equal_crp_prior_plus_marginals() -> None:
+    """Differences of _Model.log_posterior between partitions of the same data equal those of the CRP partition
+    probability (sequential seating) plus the NIW position and (quadrature) vMF direction marginals of the groups."""
+    from lfd_torch.gmm.damm import _Model, _Stats
+
+    g = torch.Generator().manual_seed(7)
+    d, alpha, kappa = 2, 0.7, 3.0
+    y = torch.randn(7, d, generator=g, dtype=F64)
+    v = torch.randn(7, d, generator=g, dtype=F64) + torch.tensor([1.0, 0.5], dtype=F64)
+    v[4] = 0.0
+    speed = v.norm(dim=-1, keepdim=True)
+    has_dir = speed.squeeze(-1) > 0
+    u = torch.where(speed > 0, v / speed.clamp_min(1e-300), torch.zeros_like(v))
+    prior = _damm_prior(d)
+    model = _Model(alpha, kappa, prior)
+    feats = _Stats.features(y, u, has_dir)
+    partitions = [
+        [0, 0, 0, 0, 0, 0, 0], [0, 0, 0, 1, 1, 1, 1], [0, 1, 1, 1, 1, 1, 1], [0, 1, 0, 2, 1, 2, 0],
+        [0, 1, 2, 3, 4, 5, 6], [0, 0, 1, 1, 1, 1, 2], [0, 1, 0, 0, 0, 0, 0],
+    ]  # fmt: skip
+    got, want = [], []
+    for part in partitions:
+        lab = torch.tensor(part)
+        K = int(lab.max()) + 1
+        got.append(float(model.log_posterior(_Stats.of(feats, lab, K, d))))
+        ref = _crp_log_prob(part, alpha)
+        for k in range(K):
+            sel = lab == k
+            ref += float(niw_log_marginal_likelihood(prior, *sufficient_statistics(y[sel], torch.ones(int(sel.sum()), 1,
+                                                                                                     dtype=F64)))[0])
+            ref += _vmf_direction_log_marginal(u[sel & has_dir], kappa)
+        want.append(ref)
+    diffs_got = np.asarray(got) - got[0]
+    diffs_want = np.asarray(want) - want[0]
+    np.testing.assert_allclose(diffs_got, diffs_want, rtol=0, atol=1e-8)
+
+
+def test_damm_split_move_accepts_clear_splits_and_rejects_a_single_blob() -> None:
+    """One split move on two far-apart tight clusters of 100 samples under one label splits them exactly
+    (log Hastings ratio about +70 under damm_labels' prior, so accepted with probability 1) for every generator
+    seed; on one tight blob (ratio << 1) it never splits."""
+    from lfd_torch.gmm.damm import _Model, _Stats, _split_moves
+
+    d = 2
+    model = _Model(1.0, 5.0, _damm_prior(d))
+    n_split = {"pair": 0, "blob": 0}
+    for seed in range(10):
+        g = torch.Generator().manual_seed(500 + seed)
+        truth = torch.arange(2).repeat_interleave(100)
+        centres = torch.tensor([[-1.0, 0.3], [1.0, -0.3]], dtype=F64)
+        for case in ("pair", "blob"):
+            y = 0.1 * torch.randn(200, d, generator=g, dtype=F64) + (centres[truth] if case == "pair" else 0.0)
+            v = torch.tensor([1.0, 0.2], dtype=F64) + 0.1 * torch.randn(200, d, generator=g, dtype=F64)
+            u = v / v.norm(dim=-1, keepdim=True)
+            feats = _Stats.features(y, u, torch.ones(200, dtype=torch.bool))
+            z0 = torch.zeros(200, dtype=torch.long)
+            z, K = _split_moves(model, feats, y, u, z0, _Stats.of(feats, z0, 1, d), g)
+            n_split[case] += int(K > 1)
+            if case == "pair" and K == 2:
+                assert adjusted_rand_index(z, truth) == 1.0
+    assert n_split == {"pair": 10, "blob": 0}, n_split
+
+
+def test_ddcrp_recorded_log_posterior_is_the_joint_of_links_and_tables() -> None:
+    """The per-sweep score of the ddCRP sampler is log prod_i W[i, c_i] + sum over tables of the NIW log marginal.
+    With links allowed only to oneself or to the previous point (a chain), the links are read off the tables
+    (c_i = i - 1 iff i and i - 1 share a table), so the score is recomputed from the traced tables; the returned
+    MAP table is the traced table with the highest score."""
+    rng = np.random.default_rng(3)
+    M, d = 8, 2
+    y = rng.normal(size=(M, d))
+    y[4:] += 1.2
+    W = np.zeros((M, M))
+    W[np.arange(1, M), np.arange(M - 1)] = rng.uniform(0.2, 3.0, size=M - 1)
+    np.fill_diagonal(W, 0.35)
+    prior = _pcgmm_prior(d, 0.5)
+    trace: list[np.ndarray] = []
+    best, lp_hist, nt_hist = _ddcrp_gibbs(y, W, prior, 60, torch.Generator().manual_seed(4), trace=trace)
+    assert len(trace) == 60 and len({_partition_key(t) for t in trace}) > 3
+    yt = torch.as_tensor(y)
+    want = []
+    for table in trace:
+        links = [i - 1 if i > 0 and table[i] == table[i - 1] else i for i in range(M)]
+        log_prior = sum(math.log(W[i, c]) for i, c in enumerate(links))
+        _, dense = np.unique(table, return_inverse=True)
+        onehot = torch.nn.functional.one_hot(torch.as_tensor(dense), int(dense.max()) + 1).to(F64)
+        want.append(log_prior + float(niw_log_marginal_likelihood(prior, *sufficient_statistics(yt, onehot)).sum()))
+        assert nt_hist[len(want) - 1] == dense.max() + 1
+    np.testing.assert_allclose(lp_hist, want, rtol=1e-10, atol=1e-10)
+    assert _partition_key(best) == _partition_key(trace[int(np.argmax(want))])
