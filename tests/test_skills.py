@@ -849,3 +849,72 @@ def test_tree_leaves_break_ties_as_the_engine_does() -> None:
     ctx = context([-2.0, -2.0, -7.0], [[0, 1, 2]])
     assert InSubtask(ctx, 0).update() == Status.SUCCESS and ctx.densities[0] == (-2.0, -2.0)
     assert InSubtask(ctx, 2).update() == Status.FAILURE and ctx.densities[2] == (-7.0, -2.0)
+
+
+def _two_ways_task() -> tuple:
+    """Three demonstrations from (-2, 0) to the goal (2, 0): a straight lead-in to (-1, 0), then over the top
+    (demonstrations 0 and 2, through (0, 1)) or underneath (demonstration 1, through (0, -1)) to (1, 0), then a
+    straight lead-out. Segmented by hand into steps 0 (lead-in), 1 (top), 2 (bottom), 3 (lead-out) with the
+    segmentation's own assembly, so the one route is the merge (0, 1, 2, 3) of the orders (0, 1, 3) and (0, 2, 3)."""
+    from lfd_torch.data import Demos
+    from lfd_torch.segmentation.segmentation import _assemble
+
+    n = 50
+    u = torch.linspace(0.0, 1.0, n + 1, dtype=F64)[:-1]
+    lead_in = torch.stack([-2.0 + u, torch.zeros_like(u)], -1)
+    lead_out = torch.stack([1.0 + torch.linspace(0.0, 1.0, n, dtype=F64), torch.zeros(n, dtype=F64)], -1)
+    phi = torch.pi * (1.0 - u)
+    seqs, pieces, states = [], [], []
+    for i, side in enumerate((1.0, -1.0, 1.0)):
+        arc = torch.stack([phi.cos(), side * phi.sin()], -1)
+        seqs.append(torch.cat([lead_in, arc, lead_out]) + 0.001 * i)
+        step = 1 if side > 0 else 2
+        pieces.append([(0, 0, n), (step, n, 2 * n), (3, 2 * n, 3 * n)])
+        states.append(torch.cat([torch.full((n,), m, dtype=torch.long) for m in (0, step, 3)]))
+    demos = Demos.from_sequences(seqs, dt=0.02, attractor=torch.tensor([2.0, 0.0], dtype=F64))
+    seg = _assemble(demos, pieces, [[0, 1, 2, 3]], [0, 0, 0], states, [0, 1, 2, 3], 5, 1e-6, None, {})
+    return demos, seg
+
+
+def test_demonstrated_routes_are_the_orders_the_demonstrations_execute() -> None:
+    """A route merges its demonstrations' step orders; demonstrated_routes lists each order once, the most
+    demonstrated first, completed by the route's last step where a demonstration ends before it."""
+    import dataclasses
+
+    _, seg = _two_ways_task()
+    assert seg.routes == ((0, 1, 2, 3),)
+    assert seg.demonstrated_routes == ((0, 1, 3), (0, 2, 3))
+    p = [torch.tensor(rows) for rows in ([[0, 0, 50], [2, 50, 150]], [[0, 0, 50], [1, 50, 100], [3, 100, 150]],
+                                         [[0, 0, 50], [2, 50, 150]])]  # fmt: skip
+    short = dataclasses.replace(seg, pieces=tuple(p))  # two end with step 2: (0, 2) completed to (0, 2, 3)
+    assert short.demonstrated_routes == ((0, 2, 3), (0, 1, 3))
+
+
+def test_the_engine_executes_a_demonstrated_order_not_the_merged_route() -> None:
+    """From every demonstration's start the engine visits the steps of one order a demonstration executed, here
+    (0, 1, 3) (the most demonstrated, chosen on the tie of their first subtask space), never both the top and the
+    bottom way (the merged route (0, 1, 2, 3) would drive from the top's end back to the bottom's start); every
+    rollout finishes at the goal."""
+    demos, seg = _two_ways_task()
+    lib = SkillLibrary.learn(demos, seg, generator=torch.Generator().manual_seed(0), check=False)
+    assert lib.routes == ((0, 1, 3), (0, 2, 3))
+    engine = SkillEngine(lib, "none")
+    x0 = torch.stack([s[0] for s in demos.sequences()])
+    out = engine.rollout(x0, dt=0.02, n_steps=2000)
+    assert bool(out.done.all())
+    for b in range(x0.shape[0]):
+        visited = torch.unique_consecutive(out.steps[b, : int(out.result.lengths[b])]).tolist()
+        assert visited == [0, 1, 3], visited
+
+
+def test_assign_steps_tells_routes_with_the_same_first_step_apart() -> None:
+    """Two ways of the task begin with the same step: each demonstration is assigned its own way (route and steps
+    as segmented, up to a few samples at each switch), which the first sample alone cannot tell; a single-route
+    assignment is unchanged (tested above against an enumeration)."""
+    demos, seg = _two_ways_task()
+    eng = SkillEngine(SkillLibrary.learn(demos, seg, generator=torch.Generator().manual_seed(0), check=False), "none")
+    route, steps = eng.assign_steps(demos.positions, demos.mask)
+    assert route.tolist() == [0, 1, 0]
+    for i in range(demos.n_demos):
+        assert torch.unique_consecutive(steps[i]).tolist() == list(eng.routes[int(route[i])])
+        assert float((steps[i] != seg.labels[i]).double().mean()) < 0.05

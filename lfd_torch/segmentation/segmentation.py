@@ -117,7 +117,9 @@ states they share (a longest common subsequence of their run states) cover at le
 each, and within a route the run sequences are merged by that alignment into one ordered list of steps (a
 progressive alignment: a run whose state matches a step of the route joins it, any other run becomes a step of
 its own at its place in the order). So a demonstration may skip a step or add one; it is never cut to a
-consensus count. A state may recur in several steps (two runs of one state are two steps).
+consensus count. A state may recur in several steps (two runs of one state are two steps). A route is therefore
+the merge of its demonstrations' step orders and may hold alternatives one after the other; what a robot can
+execute is one of those orders (:attr:`Segmentation.demonstrated_routes`, the skill engine's routes).
 
 Attractor g_m: the mean over the pieces of step m of their last sample (the paper's eq. under Table I writes a
 sum; it means the mean); the last step of every route ends at the task attractor ``Demos.attractor``.
@@ -277,6 +279,31 @@ class Segmentation:
     def step_sequence(self, i: int) -> list[int]:
         """Steps demonstration i visits, in time order."""
         return self.pieces[self._sequence(i)][:, 0].tolist()
+
+    @functools.cached_property
+    def demonstrated_routes(self) -> tuple[tuple[int, ...], ...]:
+        """The step orders the demonstrations execute: each distinct :meth:`step_sequence`, completed by its route's
+        last step when it ends before it (every route ends at the task attractor). In route order; within a route
+        the orders most demonstrations execute first, then by first appearance.
+
+        A route is the merge of its demonstrations' step orders (module docstring), so where they skip different
+        steps it holds alternatives one after the other (digit strokes written two ways: (0, 3, 4) and (0, 1, 2, 4)
+        make the route (0, 1, 2, 3, 4)); executing the merged route visits both alternatives. These orders are the
+        Sequence nodes a behaviour tree can execute; the choice among them is the Fallback's (paper Sec. III-B).
+        With one order per route they are the routes.
+        """
+        orders: list[tuple[int, ...]] = []
+        for r, route in enumerate(self.routes):
+            count: dict[tuple[int, ...], int] = {}
+            for i in range(self.n_sequences):
+                if int(self.route_of[i]) != r:
+                    continue
+                seq = tuple(self.step_sequence(i))
+                if seq[-1] != route[-1]:
+                    seq = seq + (route[-1],)
+                count[seq] = count.get(seq, 0) + 1  # dicts keep first appearance, sorted() is stable
+            orders.extend(sorted(count, key=lambda s: -count[s]) or [route])
+        return tuple(orders)
 
     def _sequence(self, i: int) -> int:
         if isinstance(i, bool) or not isinstance(i, numbers.Integral) or not 0 <= i < self.n_sequences:

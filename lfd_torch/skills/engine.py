@@ -1,7 +1,8 @@
 """Skill decision engine: which step, which modulation branch, what velocity (paper Sec. IV, Fig. 3).
 
 State of a robot: its position x and its progress (route r, index j into the route's step list); the active step is
-m = routes[r][j]. A tick
+m = routes[r][j]. The routes are the library's (:attr:`~lfd_torch.skills.SkillLibrary.routes`): the step orders the
+demonstrations executed, so a route never runs through two alternatives that different demonstrations took. A tick
 
   1. picks the route once, at the first tick: the route whose first subtask space is the most likely at x;
   2. completes steps: while ||x - g_m|| < r_a (the arrival ball, :mod:`~lfd_torch.skills.arrival`), j advances;
@@ -691,10 +692,12 @@ class SkillEngine:
     def assign_steps(self, x: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Step of every sample of B trajectories, monotone in time, from the subtask spaces.
 
-        The route is the one :meth:`choose_route` picks at the first sample; within it the steps are the most
-        likely left-to-right path: the Viterbi path of a chain over the route's steps (stay or move to the next
-        step; no skips) with emission log p(x_t | A_m). Used to evaluate a step's velocity field on a demonstration
-        that the engine did not drive (E1, E2 of a test demonstration).
+        The most likely left-to-right path over the steps of any route: per route the Viterbi path of a chain over
+        its steps (start at its first step, stay or move to the next one, no skips, end anywhere) with emission
+        log p(x_t | A_m), and the route whose path scores highest (the first on ties). Routes that begin with the
+        same step (two ways a task was demonstrated) are told apart by the whole trajectory, not by its first
+        sample. Used to evaluate a step's velocity field on a demonstration that the engine did not drive (E1, E2
+        of a test demonstration).
 
         Args:
             x: (B, T, d) positions.
@@ -709,13 +712,15 @@ class SkillEngine:
         B, T, _ = x.shape
         mask = torch.ones(B, T, dtype=torch.bool, device=x.device) if mask is None else mask.to(x.device)
         lengths = mask.sum(-1)
-        route = self.choose_route(x[:, 0])
-        L = self._route_steps.shape[1]
-        steps_of = self._route_steps[route]  # (B, L), padded with the last step
-        length = self._route_len[route]  # (B,)
-        pos = torch.arange(L, device=x.device)
+        R, L = self._route_steps.shape
         ld = self.log_density(x.reshape(-1, self.dim)).view(B, T, -1)
-        emit = ld.gather(-1, steps_of.unsqueeze(1).expand(B, T, L))  # (B, T, L)
+        # every (trajectory, route) pair is one row of the recursion: B R rows, trajectory-major
+        steps_of = self._route_steps.repeat(B, 1)  # (B R, L), padded with the last step
+        length = self._route_len.repeat(B)  # (B R,)
+        ld, mask, lengths = (t.repeat_interleave(R, 0) for t in (ld, mask, lengths))
+        B = B * R
+        pos = torch.arange(L, device=x.device)
+        emit = ld.gather(-1, steps_of.unsqueeze(1).expand(B, T, L))  # (B R, T, L)
         emit = emit.masked_fill((pos >= length.unsqueeze(-1)).unsqueeze(1), -math.inf)  # beyond the route
         neg = torch.full((B, 1), -math.inf, **self._f)
         score = torch.where(pos == 0, emit[:, 0], torch.full_like(emit[:, 0], -math.inf))
@@ -727,8 +732,13 @@ class SkillEngine:
             live = mask[:, t].unsqueeze(-1)
             score = torch.where(live, new, score)
             moved[:, t] = move & live
-        j = score.masked_fill(pos >= length.unsqueeze(-1), -math.inf).argmax(-1)  # (B,)
-        out = torch.empty((B, T), dtype=torch.long, device=x.device)
+        score = score.masked_fill(pos >= length.unsqueeze(-1), -math.inf)
+        j = score.argmax(-1)  # (B R,) the best path's last position in each route
+        best = score.gather(-1, j.unsqueeze(-1)).squeeze(-1)
+        route = best.view(-1, R).argmax(-1)  # (B,), the first route on ties
+        rows = torch.arange(route.shape[0], device=x.device) * R + route
+        j, moved, steps_of, mask, lengths = j[rows], moved[rows], steps_of[rows], mask[rows], lengths[rows]
+        out = torch.empty((rows.shape[0], T), dtype=torch.long, device=x.device)
         for t in range(T - 1, -1, -1):
             out[:, t] = j
             j = j - (moved[:, t].gather(-1, j.unsqueeze(-1)).squeeze(-1) & (t < lengths)).long()

@@ -116,7 +116,8 @@ class SkillLibrary:
     """Skills of a task, with the segmentation that defines their steps, routes and subtask spaces.
 
     Attributes:
-        segmentation: the segmentation (steps, attractors g_m, routes, subtask spaces A_m).
+        segmentation: the segmentation (steps, attractors g_m, routes, subtask spaces A_m); the engine executes
+            its :attr:`~lfd_torch.segmentation.Segmentation.demonstrated_routes` (:attr:`routes`).
         skills: M skills in step order (``skills[m].step == m``).
         entropy_quantile: how the thresholds were chosen (quantile of H2 over the training states; None: x_r = g_m).
         span: largest coordinate range of the training positions (data units); tolerances of the engine scale
@@ -156,7 +157,9 @@ class SkillLibrary:
 
     @property
     def routes(self) -> tuple[tuple[int, ...], ...]:
-        return self.segmentation.routes
+        """The step orders the engine executes: :attr:`Segmentation.demonstrated_routes` (each one that a
+        demonstration executed; a route whose demonstrations skip different steps gives several)."""
+        return self.segmentation.demonstrated_routes
 
     @property
     def attractors(self) -> Tensor:

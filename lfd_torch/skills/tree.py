@@ -1,6 +1,9 @@
 """The task's behaviour tree, built automatically from the segmentation with py_trees (paper Sec. IV, Fig. 3).
 
-Structure (one ``Sequence`` per route under a root ``Selector``; a single route gives a single Sequence)::
+Structure (one ``Sequence`` per route under a root ``Selector``, the paper's Fallback; a single route gives a single
+Sequence). The routes are the engine's, the step orders the demonstrations executed
+(:attr:`~lfd_torch.segmentation.Segmentation.demonstrated_routes`): two ways of writing a stroke are two Sequences,
+not one that runs through both::
 
     Selector "task"
       Sequence "route r"
