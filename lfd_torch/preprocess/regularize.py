@@ -200,6 +200,8 @@ def resample(demos: Demos, n_samples: int, mode: str = "time") -> Demos:
     stacked = torch.cat([demos.positions, demos.times.unsqueeze(-1)], -1)
     out = _interp(grid, stacked, demos.lengths, query)
     positions, times = out[..., :-1], out[..., -1]
+    if mode == "arc_length":  # a still start is one point of the path: it keeps its first time stamp, as the end
+        times[:, 0] = demos.times[:, 0]  # keeps its last (the interpolation takes the last sample of a flat run)
     lengths = torch.full((B,), n_samples, dtype=torch.long, device=demos.device)
     velocities = finite_difference(positions, times, lengths)
     return Demos(positions, velocities, times, lengths, demos.attractor, demos.names)
@@ -294,8 +296,8 @@ def estimate_velocities(demos: Demos, scheme: str = "central") -> Demos:
 def trim_still_tail(demos: Demos, position_tol: float, velocity_tol: float) -> Demos:
     """Cut the still tail near the attractor.
 
-    A sample is *still* when it lies within ``position_tol`` of the attractor and moves slower than
-    ``velocity_tol``. The trailing run of still samples of each demonstration is cut, keeping its first sample
+    A sample is *still* when it lies within ``position_tol`` of the attractor and moves no faster than
+    ``velocity_tol`` (both bounds inclusive). The trailing run of still samples of each demonstration is cut, keeping its first sample
     (the demonstration then ends where it first came to rest at the goal). At least ``MIN_SAMPLES`` are kept.
     Units: those of the data (LASA: mm and mm/s).
     """
