@@ -297,8 +297,9 @@ def trim_still_tail(demos: Demos, position_tol: float, velocity_tol: float) -> D
     """Cut the still tail near the attractor.
 
     A sample is *still* when it lies within ``position_tol`` of the attractor and moves no faster than
-    ``velocity_tol`` (both bounds inclusive). The trailing run of still samples of each demonstration is cut, keeping its first sample
-    (the demonstration then ends where it first came to rest at the goal). At least ``MIN_SAMPLES`` are kept.
+    ``velocity_tol`` (both bounds inclusive). The trailing run of still samples of each demonstration is cut,
+    keeping its first sample (the demonstration then ends where it first came to rest at the goal). At least
+    ``MIN_SAMPLES`` are kept.
     Units: those of the data (LASA: mm and mm/s).
     """
     _check_demos(demos)
