@@ -56,6 +56,12 @@ def mm3_all() -> tuple:
 
 
 @pytest.fixture(scope="module")
+def two_ways_library() -> SkillLibrary:
+    demos, seg = _two_ways_task()
+    return SkillLibrary.learn(demos, seg, generator=torch.Generator().manual_seed(0), check=False)
+
+
+@pytest.fixture(scope="module")
 def mm3_one() -> tuple:
     demos = load_lasa("Multi_Models_3")[[0]]
     seg = segment(demos, generator=torch.Generator().manual_seed(0))
@@ -251,7 +257,7 @@ def test_step_batch_takes_back_the_progress_it_returns(l_library: SkillLibrary) 
         eng.step_batch(x, dec.route, dec.index + 1)
 
 
-@pytest.mark.parametrize("which", ["l_library", "mm3_all"])
+@pytest.mark.parametrize("which", ["l_library", "mm3_all", "two_ways_library"])
 @pytest.mark.parametrize("mode", ["none", "full"])
 def test_vectorised_decisions_equal_the_py_trees_tick(which: str, mode: str, request) -> None:
     lib = request.getfixturevalue(which)
@@ -843,9 +849,9 @@ def test_tree_leaves_break_ties_as_the_engine_does() -> None:
 
     for routes in ([[1, 2], [0, 2], [1, 0]], [[0, 2], [1, 2], [1, 0]]):  # route 0 ties with 1 (equal density), 2
         ctx = context([-1.0, -1.0, -5.0], routes)
-        assert [ChooseRoute(ctx, r).update() for r in range(3)] == [Status.SUCCESS, Status.FAILURE, Status.FAILURE]
+        assert [ChooseRoute(ctx, [r]).update() for r in range(3)] == [Status.SUCCESS, Status.FAILURE, Status.FAILURE]
     ctx = context([-1.0, -1.0, -5.0], [[2], [1]])  # no tie: the likelier first space wins
-    assert [ChooseRoute(ctx, r).update() for r in range(2)] == [Status.FAILURE, Status.SUCCESS]
+    assert [ChooseRoute(ctx, [r]).update() for r in range(2)] == [Status.FAILURE, Status.SUCCESS]
     ctx = context([-2.0, -2.0, -7.0], [[0, 1, 2]])
     assert InSubtask(ctx, 0).update() == Status.SUCCESS and ctx.densities[0] == (-2.0, -2.0)
     assert InSubtask(ctx, 2).update() == Status.FAILURE and ctx.densities[2] == (-7.0, -2.0)
@@ -891,20 +897,126 @@ def test_demonstrated_routes_are_the_orders_the_demonstrations_execute() -> None
 
 
 def test_the_engine_executes_a_demonstrated_order_not_the_merged_route() -> None:
-    """From every demonstration's start the engine visits the steps of one order a demonstration executed, here
-    (0, 1, 3) (the most demonstrated, chosen on the tie of their first subtask space), never both the top and the
-    bottom way (the merged route (0, 1, 2, 3) would drive from the top's end back to the bottom's start); every
-    rollout finishes at the goal."""
+    """From starts around the demonstrations' the engine visits the steps of one order a demonstration executed,
+    (0, 1, 3) or (0, 2, 3) (the way on picked at the end of the lead-in), never both the top and the bottom way (the
+    merged route (0, 1, 2, 3) would drive from the top's end back to the bottom's start); every rollout finishes at
+    the goal, and without modulation each order is taken from some start."""
     demos, seg = _two_ways_task()
     lib = SkillLibrary.learn(demos, seg, generator=torch.Generator().manual_seed(0), check=False)
     assert lib.routes == ((0, 1, 3), (0, 2, 3))
-    engine = SkillEngine(lib, "none")
-    x0 = torch.stack([s[0] for s in demos.sequences()])
-    out = engine.rollout(x0, dt=0.02, n_steps=2000)
-    assert bool(out.done.all())
-    for b in range(x0.shape[0]):
-        visited = torch.unique_consecutive(out.steps[b, : int(out.result.lengths[b])]).tolist()
-        assert visited == [0, 1, 3], visited
+    gen = torch.Generator().manual_seed(4)
+    x0 = torch.tensor([-2.0, 0.0], dtype=F64) + 0.3 * (2 * torch.rand(12, 2, generator=gen, dtype=F64) - 1)
+    for mode in ("none", "full"):
+        out = SkillEngine(lib, mode).rollout(x0, dt=0.02, n_steps=2000)
+        assert bool(out.done.all())
+        taken = set()
+        for b in range(x0.shape[0]):
+            visited = torch.unique_consecutive(out.steps[b, : int(out.result.lengths[b])]).tolist()
+            assert visited in ([0, 1, 3], [0, 2, 3]), visited
+            assert visited == list(lib.routes[int(out.routes[b])])
+            taken.add(tuple(visited))
+        if mode == "none":  # with the modulation these starts all arrive where A_1 is the likelier
+            assert len(taken) == 2, taken
+
+
+def test_the_way_on_is_picked_where_the_routes_part() -> None:
+    """Routes (0, 1, 3) and (0, 2, 3) share step 0. A robot on route 0 that completes step 0 goes on with the way
+    whose next subtask space is the more likely at its state (A_1: route 0, A_2: route 1), in the vectorised engine
+    and in the py_trees tick alike; before the arrival, and on a route without a branching, the route stays. The old
+    engine kept the route picked at the start whatever the state at the branching."""
+    demos, seg = _two_ways_task()
+    eng = SkillEngine(SkillLibrary.learn(demos, seg, generator=torch.Generator().manual_seed(0), check=False), "none")
+    g0 = eng.goals[0]
+    gen = torch.Generator().manual_seed(5)
+    angle = 2 * math.pi * torch.rand(64, generator=gen, dtype=F64)
+    radius = 0.95 * eng.arrival_radius * torch.rand(64, generator=gen, dtype=F64).sqrt()
+    x = g0 + radius.unsqueeze(-1) * torch.stack([angle.cos(), angle.sin()], -1)  # inside the arrival ball of g_0
+    ld = eng.log_density(x)
+    want = torch.where(ld[:, 1] >= ld[:, 2], 0, 1)
+    assert 0 < int(want.sum()) < 64  # both ways are taken from this sample
+    zeros = torch.zeros(64, dtype=torch.long)
+    route, index, done = eng.advance(x, zeros, zeros)
+    assert torch.equal(route, want) and bool((index == 1).all()) and not bool(done.any())
+    for start in (0, 1):  # a robot already on route 1 is re-picked the same way
+        route, _, _ = eng.advance(x, torch.full_like(zeros, start), zeros)
+        assert torch.equal(route, want)
+    for i in range(0, 64, 4):
+        t = eng.tick(x[i], step=0, route=0)
+        assert (t.route, t.index, t.step) == (int(want[i]), 1, eng.routes[int(want[i])][1])
+    far = x + torch.tensor([-0.5, 0.0], dtype=F64)  # outside the ball: step 0 goes on, the route stays
+    route, index, _ = eng.advance(far, zeros + 1, zeros)
+    assert bool((route == 1).all()) and bool((index == 0).all())
+    near_g1 = eng.goals[1].expand(4, 2)  # completing step 1 of route 0: no branching after it
+    route, index, _ = eng.advance(near_g1, zeros[:4], zeros[:4] + 1)
+    assert bool((route == 0).all()) and bool((index == 2).all())
+
+
+def test_the_way_on_keeps_the_own_route_on_ties_else_takes_the_first() -> None:
+    """SkillEngine._way_on_fm against a per-row loop over the routes (0, 1, 3), (0, 2, 3), (0, 2, 4, 3) at position 1,
+    on densities with exact ties between A_1 and A_2 in a third of the rows: the own route unless another way's next
+    space is strictly likelier, then the first route of the likeliest way."""
+    routes = ((0, 1, 3), (0, 2, 3), (0, 2, 4, 3))
+    L = 4
+    stub = types.SimpleNamespace(
+        _continuation=torch.tensor([[[len(q) > j and q[:j] == r[:j] for q in routes] for j in range(L)]
+                                    for r in routes]),
+        _route_steps=torch.tensor([list(r) + [r[-1]] * (L - len(r)) for r in routes]))  # fmt: skip
+    gen = torch.Generator().manual_seed(6)
+    B = 90
+    ld = torch.randn(5, B, generator=gen, dtype=F64)
+    ld[2, ::3] = ld[1, ::3]  # ties of the two ways on
+    route = torch.randint(0, 3, (B,), generator=gen)
+    got = SkillEngine._way_on_fm(stub, ld, route, torch.ones(B, dtype=torch.long))
+    for b in range(B):
+        own = int(route[b])
+        best = max(float(ld[routes[q][1], b]) for q in range(3))
+        ties = [q for q in range(3) if float(ld[routes[q][1], b]) == best]
+        want = own if own in ties else ties[0]
+        assert int(got[b]) == want, (b, own)
+
+
+def test_the_tree_branches_where_the_routes_part_and_ends_a_route_that_stops_there() -> None:
+    """The tree of routes (0, 1), (0, 1, 2, 1) and (0, 3, 1) (a route that ends where another goes on): the shared
+    step 0 once, a Selector after it with the ways on, and after step 1 a branch that ends route 0's task while
+    route 1 goes on with step 2. Ticked on stub densities, the tree finishes route 0 at g_1, drives route 1 on to
+    step 2 from the same state, and picks the way on after step 0 by the next subtask space (ties: the own route)."""
+    from py_trees.common import Status
+
+    from lfd_torch.skills.tree import SkillTree
+
+    ld = [0.0, -1.0, -3.0, -2.0]
+    arrived = [False] * 4
+    stub = types.SimpleNamespace(routes=((0, 1), (0, 1, 2, 1), (0, 3, 1)),
+                                 tick_probe=lambda x: (ld, arrived),
+                                 tick_velocity=lambda x, m, inside, dens: (torch.full((2,), float(m)), Branch.SMALL_SCALE))  # fmt: skip
+    tree = SkillTree(stub)  # type: ignore[arg-type]
+    names = [c.name for c in tree.root.children]
+    assert names == ["routes 0,1,2"]
+    shared = tree.root.children[0].children
+    assert [c.name for c in shared] == ["ChooseRoute 0,1,2", "step 0", "after step 0"]
+    ways = shared[2].children
+    assert [c.name for c in ways] == ["routes 0,1", "route 2"]
+    assert [c.name for c in ways[0].children] == ["ChooseRoute 0,1", "step 1", "after step 1"]
+    assert [c.name for c in ways[0].children[2].children] == ["route 0", "route 1"]
+    assert [c.name for c in ways[0].children[2].children[0].children] == ["ChooseRoute 0"]
+
+    def tick(route: int, index: int) -> tuple[int, int, Tensor | None, bool]:
+        tree.ctx.reset(torch.zeros(2, dtype=F64), route, index)
+        tree._tick_once()
+        return tree.ctx.route, tree.ctx.index, tree.ctx.velocity, tree.root.status is Status.SUCCESS
+
+    arrived[:] = [False, True, False, False]  # at g_1
+    r, j, _, done = tick(0, 1)
+    assert (r, j, done) == (0, 2, True)  # route 0 is done
+    r, j, v, done = tick(1, 1)
+    assert (r, j, done) == (1, 2, False) and float(v[0]) == 2.0  # route 1 goes on with step 2
+    arrived[:] = [True, False, False, False]  # at g_0: the way on is the likelier of A_1 (routes 0, 1) and A_3
+    for own in (0, 1, 2):
+        assert tick(own, 0)[:2] == ((own if own < 2 else 0), 1)
+    ld[:] = [0.0, -2.0, -3.0, -1.0]
+    assert [tick(own, 0)[0] for own in (0, 1, 2)] == [2, 2, 2]
+    ld[:] = [0.0, -1.0, -3.0, -1.0]  # a tie: each robot keeps its own way
+    assert [tick(own, 0)[0] for own in (0, 1, 2)] == [0, 1, 2]
 
 
 def test_assign_steps_tells_routes_with_the_same_first_step_apart() -> None:

@@ -4,9 +4,15 @@ State of a robot: its position x and its progress (route r, index j into the rou
 m = routes[r][j]. The routes are the library's (:attr:`~lfd_torch.skills.SkillLibrary.routes`): the step orders the
 demonstrations executed, so a route never runs through two alternatives that different demonstrations took. A tick
 
-  1. picks the route once, at the first tick: the route whose first subtask space is the most likely at x;
+  1. picks the route at the first tick: the route whose first subtask space is the most likely at x (the first
+     such route on ties, i.e. the most demonstrated order among those that begin with that step);
   2. completes steps: while ||x - g_m|| < r_a (the arrival ball, :mod:`~lfd_torch.skills.arrival`), j advances;
-     after the last step of the route the task is done (velocity 0);
+     after the last step of the route the task is done (velocity 0). Where the routes that ran the same steps so
+     far continue with different steps (a branching: two ways the demonstrations went on from there), the
+     completion also re-picks the way on: the continuation whose next subtask space is the most likely at x,
+     the robot's own route on ties (then the first route that continues with the winning step). So the choice
+     among orders that share their first steps is made where they part, on the state the robot has there, not
+     at the start (the paper's Fallback at every branching; the tree's junction Selectors);
   3. chooses the branch: x in A_m (log p(x|A_m) >= log p(x|A_m-)) -> the primitive with the small-scale
      modulation, else the large-scale recovery (what each branch does in mode ``none``/``large``/``small``/``full``
      is in :mod:`lfd_torch.modulation.policy`);
@@ -249,6 +255,14 @@ class SkillEngine:
         self._route_steps = torch.tensor([list(r) + [r[-1]] * (L - len(r)) for r in routes], device=f["device"])
         self._route_len = torch.tensor([len(r) for r in routes], device=f["device"])
         self._first = self._route_steps[:, 0]
+        # continuation[r, j, q]: route q ran the steps of route r before position j and has a step at j;
+        # branching[r, j]: those continuations differ in their step at j (where re-choosing can change the way on)
+        cont = [[[len(q) > j and q[:j] == r[:j] for q in routes] for j in range(L)] for r in routes]
+        self._continuation = torch.tensor(cont, dtype=torch.bool, device=f["device"])  # (R, L, R)
+        self._branching = torch.tensor(
+            [[len({q[j] for q, c in zip(routes, cont[i][j]) if c}) > 1 for j in range(L)] for i in range(len(routes))],
+            dtype=torch.bool, device=f["device"])  # fmt: skip
+        self._any_branching = bool(self._branching.any())
         self.goals = library.attractors.to(**f)  # (M, d)
         span = library.span
         self.arrival_radius = self.arrival.radius * span
@@ -344,7 +358,8 @@ class SkillEngine:
     def advance(
         self, x: Tensor, route: Tensor, index: Tensor, ld: Tensor | None = None
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """Route choice (rows with route < 0) and step completion; returns route, index, done (B,)."""
+        """Route choice (rows with route < 0), step completion and the way on at branchings (module docstring, items
+        1-2); returns route, index, done (B,)."""
         return self._advance_fm(x.T, route, index, None if ld is None else ld.T)
 
     def _advance_fm(
@@ -360,7 +375,8 @@ class SkillEngine:
             route = torch.where(route < 0, chosen, route)
         length = self._route_len[route]
         r2 = self.arrival_radius**2
-        for _ in range(self._route_steps.shape[1]):
+        L = self._route_steps.shape[1]
+        for _ in range(L):
             active = index < length
             step = self._route_steps[route, torch.minimum(index, length - 1)]
             e = xt - self._goals_fm.index_select(1, step)
@@ -368,7 +384,27 @@ class SkillEngine:
             if not bool(hit.any()):
                 break
             index = index + hit.long()
+            if self._any_branching:
+                at = hit & (index < length) & self._branching[route, index.clamp_max(L - 1)]
+                if bool(at.any()):
+                    ld = self._bank.log_density_fm(xt) if ld is None else ld
+                    route = torch.where(at, self._way_on_fm(ld, route, index.clamp_max(L - 1)), route)
+                    length = self._route_len[route]
         return route, index, index >= length
+
+    def _way_on_fm(self, ld: Tensor, route: Tensor, index: Tensor) -> Tensor:
+        """(M, B) log densities, (B,) routes and positions -> (B,) the route to go on with from position ``index``
+        (module docstring, item 2): among the continuations of each row's route there, the one whose step at
+        ``index`` has the most likely subtask space; the row's own route on ties, else the first such route."""
+        cont = self._continuation[route, index].T  # (R, B)
+        dens = ld.gather(0, self._route_steps.index_select(1, index)).masked_fill(~cont, -math.inf)  # (R, B)
+        best, chosen = dens[0], torch.zeros_like(route)
+        for q in range(1, dens.shape[0]):  # running strict maximum: the first route on ties
+            better = dens[q] > best
+            chosen = torch.where(better, q, chosen)
+            best = torch.where(better, dens[q], best)
+        own = dens.gather(0, route.unsqueeze(0)).squeeze(0)
+        return torch.where(own >= best, route, chosen)
 
     def active_step(self, route: Tensor, index: Tensor) -> Tensor:
         """(B,) active step routes[route][index] (the last step once done)."""

@@ -1,24 +1,35 @@
 """The task's behaviour tree, built automatically from the segmentation with py_trees (paper Sec. IV, Fig. 3).
 
-Structure (one ``Sequence`` per route under a root ``Selector``, the paper's Fallback; a single route gives a single
-Sequence). The routes are the engine's, the step orders the demonstrations executed
-(:attr:`~lfd_torch.segmentation.Segmentation.demonstrated_routes`): two ways of writing a stroke are two Sequences,
-not one that runs through both::
+Structure: the routes (the engine's, the step orders the demonstrations executed,
+:attr:`~lfd_torch.segmentation.Segmentation.demonstrated_routes`) merged where they share their first steps, a
+Fallback (``Selector``) wherever they part. Two ways of writing a stroke are two branches, not one Sequence that
+runs through both; a single route gives a single Sequence. For routes (0, 1, 3) and (0, 2, 3)::
 
     Selector "task"
-      Sequence "route r"
-        ChooseRoute r                      SUCCESS iff r is the robot's route (picked once, at the first tick: the
-                                           route whose first subtask space is the most likely at x)
-        Selector "step m" (for each step of the route, in order)
-          Reached m                        SUCCESS iff step m is complete (completed earlier, or x in the arrival
-                                           ball of g_m now: the progress then advances past m)
-          Sequence "track m"
-            InSubtask m                    SUCCESS iff log p(x|A_m) >= log p(x|A_m-)
-            Track m                        RUNNING: primitive m with the small-scale modulation
-          Recover m                        RUNNING: primitive m with the large-scale modulation
+      Sequence "routes 0,1"
+        ChooseRoute 0,1                    SUCCESS iff the robot's route is one of these (picked at the first tick:
+                                           the route whose first subtask space is the most likely at x, the first
+                                           on ties)
+        Selector "step 0"                  (one per step shared by these routes, in order)
+          Reached 0                        SUCCESS iff step m is complete (completed earlier, or x in the arrival
+                                           ball of g_m now: the progress then advances past m and, where the routes
+                                           part next, re-picks the way on, :meth:`_Context.way_on`)
+          Sequence "track 0"
+            InSubtask 0                    SUCCESS iff log p(x|A_m) >= log p(x|A_m-)
+            Track 0                        RUNNING: primitive m with the small-scale modulation
+          Recover 0                        RUNNING: primitive m with the large-scale modulation
+        Selector "after step 0"            where the routes part: one branch per way on, in route order
+          Sequence "route 0"
+            ChooseRoute 0
+            Selector "step 1" ... Selector "step 3"
+          Sequence "route 1"
+            ChooseRoute 1
+            Selector "step 2" ... Selector "step 3"
+
+A route that ends where others go on has a branch of its ``ChooseRoute`` alone (SUCCESS: its task is done).
 
 Memory semantics: every composite is built with ``memory=False``: each tick re-evaluates the tree from the root,
-and the progress through the Sequence (which steps are complete) is the robot's state, held in the tree's
+and the progress (the route and which of its steps are complete) is the robot's state, held in the tree's
 context (the blackboard's role), not in the composites. A completed step therefore stays complete (``Reached``
 returns SUCCESS for it whatever x is), which is what a ``memory=True`` Sequence would give, while a tick is a pure
 function of (x, route, progress): the vectorised :meth:`~lfd_torch.skills.SkillEngine.decide` can take exactly
@@ -72,6 +83,21 @@ class _Context:
         self.densities = {}
         self._probe = None
 
+    def way_on(self) -> None:
+        """At a branching of the routes (the routes that ran the robot's steps so far continue with different steps
+        at its position), the route to go on with: the one whose next subtask space is the most likely at x, the
+        robot's own on ties, else the first (:meth:`SkillEngine._way_on_fm`)."""
+        routes, r, j = self.engine.routes, self.route, self.index
+        if j >= len(routes[r]):
+            return
+        ways = [q for q, steps in enumerate(routes) if len(steps) > j and steps[:j] == routes[r][:j]]
+        if len({routes[q][j] for q in ways}) < 2:
+            return
+        ld = self.probe()[0]
+        best = max(ld[routes[q][j]] for q in ways)
+        if ld[routes[r][j]] < best:
+            self.route = next(q for q in ways if ld[routes[q][j]] == best)
+
     def probe(self) -> tuple[list[float], list[bool]]:
         """log p(x|A_m) and arrival of every step at x (:meth:`SkillEngine.tick_probe`), evaluated once per tick at
         the first leaf that needs them."""
@@ -101,9 +127,11 @@ class _Leaf(py_trees.behaviour.Behaviour):
 
 
 class ChooseRoute(_Leaf):
-    def __init__(self, ctx: _Context, route: int):
-        super().__init__(f"ChooseRoute {route}", ctx)
-        self.route = route
+    """SUCCESS iff the robot's route is one of ``routes`` (a robot without one gets it here, at its first tick)."""
+
+    def __init__(self, ctx: _Context, routes: list[int]):
+        super().__init__(f"ChooseRoute {','.join(map(str, routes))}", ctx)
+        self.routes = frozenset(routes)
 
     def update(self) -> Status:
         c = self.ctx
@@ -114,7 +142,7 @@ class ChooseRoute(_Leaf):
             else:
                 ld = c.probe()[0]
                 c.route = max(range(len(first)), key=lambda r: (ld[first[r]], -r))
-        return Status.SUCCESS if c.route == self.route else Status.FAILURE
+        return Status.SUCCESS if c.route in self.routes else Status.FAILURE
 
 
 class Reached(_Leaf):
@@ -128,6 +156,7 @@ class Reached(_Leaf):
             return Status.SUCCESS
         if c.probe()[1][self.step]:  # ||x - g_m|| < r_a
             c.index = self.position + 1
+            c.way_on()
             return Status.SUCCESS
         return Status.FAILURE
 
@@ -180,28 +209,45 @@ class SkillTree:
     """The behaviour tree of an engine's library (module docstring) and its single-state tick.
 
     Attributes:
-        root: the py_trees root (a ``Selector`` over the routes).
+        root: the py_trees root (a ``Selector`` over the ways the routes begin).
         tree: the ``py_trees.trees.BehaviourTree`` that ticks it, with a :class:`DecisionVisitor`.
     """
 
     def __init__(self, engine: SkillEngine):
         self.engine = engine
         self.ctx = _Context(engine)
-        routes = []
-        for r, steps in enumerate(engine.routes):
-            children: list[py_trees.behaviour.Behaviour] = [ChooseRoute(self.ctx, r)]
-            for j, m in enumerate(steps):
-                track = py_trees.composites.Sequence(f"track {m}", memory=False,
-                                                     children=[InSubtask(self.ctx, m), Track(self.ctx, m)])  # fmt: skip
-                children.append(
-                    py_trees.composites.Selector(f"step {m}", memory=False,
-                                                 children=[Reached(self.ctx, j, m), track, Recover(self.ctx, m)])  # fmt: skip
-                )
-            routes.append(py_trees.composites.Sequence(f"route {r}", memory=False, children=children))
-        self.root = py_trees.composites.Selector("task", memory=False, children=routes)
+        self.root = py_trees.composites.Selector("task", memory=False,
+                                                 children=self._ways(list(range(len(engine.routes))), 0))  # fmt: skip
         self.tree = py_trees.trees.BehaviourTree(self.root)
         self.visitor = DecisionVisitor()
         self.tree.visitors.append(self.visitor)
+
+    def _ways(self, routes: list[int], j: int) -> list[py_trees.behaviour.Behaviour]:
+        """One branch per way on from position j of ``routes`` (which share their steps before j), in route order:
+        a Sequence of ChooseRoute, the steps its routes share and, where they part, a Selector of their ways on."""
+        steps = self.engine.routes
+        groups: dict[int | None, list[int]] = {}  # step at j (None: the route ends) -> routes
+        for r in routes:
+            groups.setdefault(steps[r][j] if len(steps[r]) > j else None, []).append(r)
+        branches = []
+        for members in groups.values():
+            children: list[py_trees.behaviour.Behaviour] = [ChooseRoute(self.ctx, members)]
+            k = j
+            while all(len(steps[r]) > k for r in members) and len({steps[r][k] for r in members}) == 1:
+                children.append(self._step(k, steps[members[0]][k]))
+                k += 1
+            if any(len(steps[r]) > k for r in members):  # the routes part (or one ends) at k
+                children.append(py_trees.composites.Selector(f"after step {steps[members[0]][k - 1]}", memory=False,
+                                                             children=self._ways(members, k)))  # fmt: skip
+            name = f"route{'s' if len(members) > 1 else ''} {','.join(map(str, members))}"
+            branches.append(py_trees.composites.Sequence(name, memory=False, children=children))
+        return branches
+
+    def _step(self, position: int, m: int) -> py_trees.behaviour.Behaviour:
+        track = py_trees.composites.Sequence(f"track {m}", memory=False,
+                                             children=[InSubtask(self.ctx, m), Track(self.ctx, m)])  # fmt: skip
+        return py_trees.composites.Selector(f"step {m}", memory=False,
+                                            children=[Reached(self.ctx, position, m), track, Recover(self.ctx, m)])  # fmt: skip
 
     def tick(self, x: Tensor, *, step: int | None = None, route: int | None = None) -> TickResult:
         """Tick the tree once for the single state x in step ``step`` (None: start of the task)."""
