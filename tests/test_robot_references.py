@@ -252,6 +252,31 @@ def test_cylinder_inertia_closed_form_and_model_inertia() -> None:
 
 
 # ---------------------------------------------------------------------------------------------- demonstration
+def test_body_quaternions_are_the_joint_rotations_also_for_half_turns() -> None:
+    """The MJCF body quaternion of a URDF rpy (plant._quat) against Rodrigues' formula of the rotation it encodes,
+    turned back into a matrix by the explicit quaternion formula: random rotations and half turns about random axes
+    (w = 0, where signs read off differences of matrix entries were rounding noise: the axis (1, 2, -3) came out as
+    a different rotation, 1.7 off in a matrix entry)."""
+    from lfd_torch.robot.plant import _quat
+    from lfd_torch.robot.urdf import rpy_to_matrix
+
+    rng = np.random.default_rng(7)
+    axes = np.vstack([[1.0, 2.0, -3.0], [1.0, 1.0, -1.0], rng.normal(size=(20, 3))])
+    angles = np.concatenate([[math.pi, math.pi], np.where(np.arange(20) % 2 == 0, math.pi, rng.uniform(0, math.pi, 20))])
+    for axis, angle in zip(axes, angles):
+        k = axis / np.linalg.norm(axis)
+        K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        R = np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * K @ K
+        rpy = tuple(Rotation.from_matrix(R).as_euler("xyz"))  # URDF rpy: fixed axes x, y, z
+        assert np.allclose(np.array(rpy_to_matrix(rpy)), R, atol=1e-12)
+        w, x, y, z = _quat(rpy)
+        Rq = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                       [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                       [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])  # fmt: skip
+        assert np.allclose(Rq, R, atol=1e-12), (axis, angle)
+        assert w >= 0.0 and abs(w * w + x * x + y * y + z * z - 1.0) < 1e-12
+
+
 def test_solve_ik_one_iteration_is_the_damped_least_squares_step(arm: BaxterArm) -> None:
     """One iteration of solve_ik is q + J_w^T (J_w J_w^T + damping^2 I)^-1 W e with the weighted pose error
     e = [tip - p; log(R_des R^T)] (no posture term in a single pass); reference: numpy and scipy's rotation

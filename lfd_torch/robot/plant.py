@@ -179,14 +179,15 @@ def _f(x) -> str:
 
 
 def _quat(rpy) -> np.ndarray:
-    """(w, x, y, z) unit quaternion of the URDF rpy rotation (float64)."""
-    rot = np.array(rpy_to_matrix(rpy))
-    w = math.sqrt(max(0.0, 1.0 + rot[0, 0] + rot[1, 1] + rot[2, 2])) / 2.0
-    x = math.copysign(math.sqrt(max(0.0, 1.0 + rot[0, 0] - rot[1, 1] - rot[2, 2])) / 2.0, rot[2, 1] - rot[1, 2])
-    y = math.copysign(math.sqrt(max(0.0, 1.0 - rot[0, 0] + rot[1, 1] - rot[2, 2])) / 2.0, rot[0, 2] - rot[2, 0])
-    z = math.copysign(math.sqrt(max(0.0, 1.0 - rot[0, 0] - rot[1, 1] + rot[2, 2])) / 2.0, rot[1, 0] - rot[0, 1])
+    """(w, x, y, z) unit quaternion of the URDF rpy rotation (float64), w >= 0.
+
+    scipy's conversion takes the quaternion from its largest component, so it stays exact for half turns about any
+    axis, where w ~ 0 and the signs of x, y, z read off differences of matrix entries would be rounding noise."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(np.array(rpy_to_matrix(rpy))).as_quat()
     q = np.array([w, x, y, z])
-    return q / np.linalg.norm(q)
+    return -q if w < 0 else q
 
 
 def _segment_inertial(mass: float, radius: float, a: np.ndarray, b: np.ndarray) -> str:
