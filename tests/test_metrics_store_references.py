@@ -1,4 +1,4 @@
-"""Metrics, results store and trial helpers against independent references: per-sample Python loops, numpy,
+"""Metrics and the results store against independent references: per-sample Python loops, numpy,
 shapely, closed forms and file-system properties (boundaries, dtype promotion, gapped masks, weights, atomicity)."""
 
 from __future__ import annotations
