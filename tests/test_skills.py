@@ -943,6 +943,10 @@ def test_the_way_on_is_picked_where_the_routes_part() -> None:
     for i in range(0, 64, 4):
         t = eng.tick(x[i], step=0, route=0)
         assert (t.route, t.index, t.step) == (int(want[i]), 1, eng.routes[int(want[i])][1])
+    t = eng.tick(x[0])  # a new task: the routes share step 0, the step alone says where the robot is
+    assert eng.tick(x[0], step=0).route == int(want[0]) and (t.route, t.index) == (int(want[0]), 1)
+    with pytest.raises(InvalidArgumentError, match="different steps before"):
+        eng.tick(x[0], step=3)  # the last step follows step 1 on one route and step 2 on the other
     far = x + torch.tensor([-0.5, 0.0], dtype=F64)  # outside the ball: step 0 goes on, the route stays
     route, index, _ = eng.advance(far, zeros + 1, zeros)
     assert bool((route == 1).all()) and bool((index == 0).all())

@@ -628,7 +628,8 @@ class SkillEngine:
         Args:
             x: (d,) position.
             step: the active step m of the robot (None: a new task, the tree picks the route).
-            route: its route (needed only when ``step`` belongs to several routes).
+            route: its route (needed only when ``step`` belongs to several routes that run different steps
+                before it).
         """
         return self.tree.tick(x, step=step, route=route)
 

@@ -298,11 +298,14 @@ class SkillTree:
             return int(route), 0
         if route is None:
             owners = [r for r, steps in enumerate(routes) if step in steps]
-            if len(owners) != 1:
-                raise InvalidArgumentError(
-                    f"step {step!r} belongs to routes {owners}; pass route= to say which" if owners
-                    else f"step {step!r} is in no route"
-                )
+            if not owners:
+                raise InvalidArgumentError(f"step {step!r} is in no route")
+            # routes that run the same steps up to this one share the robot's progress: the first stands for them
+            # (the way on is picked where they part)
+            heads = {routes[r][: routes[r].index(step) + 1] for r in owners}
+            if len(heads) != 1:
+                raise InvalidArgumentError(f"step {step!r} belongs to routes {owners} with different steps before "
+                                           "it; pass route= to say which")
             route = owners[0]
         if not 0 <= int(route) < len(routes) or step not in routes[route]:
             raise InvalidArgumentError(f"step {step!r} is not in route {route!r}")
