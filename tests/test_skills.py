@@ -990,9 +990,11 @@ def test_the_tree_branches_where_the_routes_part_and_ends_a_route_that_stops_the
 
     ld = [0.0, -1.0, -3.0, -2.0]
     arrived = [False] * 4
-    stub = types.SimpleNamespace(routes=((0, 1), (0, 1, 2, 1), (0, 3, 1)),
-                                 tick_probe=lambda x: (ld, arrived),
-                                 tick_velocity=lambda x, m, inside, dens: (torch.full((2,), float(m)), Branch.SMALL_SCALE))  # fmt: skip
+    def velocity(x, m, inside, densities):  # the step as the velocity: says which leaf drove the robot
+        return torch.full((2,), float(m)), Branch.SMALL_SCALE
+
+    stub = types.SimpleNamespace(routes=((0, 1), (0, 1, 2, 1), (0, 3, 1)), tick_probe=lambda x: (ld, arrived),
+                                 tick_velocity=velocity)
     tree = SkillTree(stub)  # type: ignore[arg-type]
     names = [c.name for c in tree.root.children]
     assert names == ["routes 0,1,2"]

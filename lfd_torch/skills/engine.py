@@ -74,6 +74,17 @@ CHUNK = 1024
 GROUPED_MIN_ROWS = 256
 
 
+def _first_max(rows: Tensor) -> tuple[Tensor, Tensor]:
+    """(R, B) -> the maximum over R and the first row that reaches it, (B,) each: a running strict maximum, since
+    argmax over a leading axis is a slow strided kernel on CPUs."""
+    best, chosen = rows[0], torch.zeros(rows.shape[1], dtype=torch.long, device=rows.device)
+    for r in range(1, rows.shape[0]):
+        better = rows[r] > best
+        chosen = torch.where(better, r, chosen)
+        best = torch.where(better, rows[r], best)
+    return best, chosen
+
+
 def _single_fields(x: Tensor, g: Tensor, P: Tensor, W: Tensor, b: Tensor, c: Tensor, A: Tensor, Qh: Tensor,
                    const: Tensor, S: Tensor, *, entropy: bool) -> Tensor:  # fmt: skip
     """[f_m(x), e, P_m e, -H2_m(x) (if ``entropy``)] of one state x (d,), e = x - g_m: the tensor part of
@@ -259,9 +270,8 @@ class SkillEngine:
         # branching[r, j]: those continuations differ in their step at j (where re-choosing can change the way on)
         cont = [[[len(q) > j and q[:j] == r[:j] for q in routes] for j in range(L)] for r in routes]
         self._continuation = torch.tensor(cont, dtype=torch.bool, device=f["device"])  # (R, L, R)
-        self._branching = torch.tensor(
-            [[len({q[j] for q, c in zip(routes, cont[i][j]) if c}) > 1 for j in range(L)] for i in range(len(routes))],
-            dtype=torch.bool, device=f["device"])  # fmt: skip
+        ways_on = [[{q[j] for q, c in zip(routes, row[j]) if c} for j in range(L)] for row in cont]
+        self._branching = torch.tensor([[len(w) > 1 for w in row] for row in ways_on], device=f["device"])
         self._any_branching = bool(self._branching.any())
         self.goals = library.attractors.to(**f)  # (M, d)
         span = library.span
@@ -340,15 +350,8 @@ class SkillEngine:
         return ld[:, self._first].argmax(-1)  # (B, R) -> (B,)
 
     def _first_route_fm(self, ld: Tensor) -> Tensor:
-        """(M, B) log densities -> (B,) :meth:`choose_route` (the first route on ties): a running strict maximum
-        over the R routes, since argmax over a leading axis is a slow strided kernel on CPUs."""
-        first = ld.index_select(0, self._first)  # (R, B)
-        best, chosen = first[0], torch.zeros(first.shape[1], dtype=torch.long, device=ld.device)
-        for r in range(1, first.shape[0]):
-            better = first[r] > best
-            chosen = torch.where(better, r, chosen)
-            best = torch.where(better, first[r], best)
-        return chosen
+        """(M, B) log densities -> (B,) :meth:`choose_route` (the first route on ties, :func:`_first_max`)."""
+        return _first_max(ld.index_select(0, self._first))[1]  # (R, B) -> (B,)
 
     def reached(self, x: Tensor, step: Tensor) -> Tensor:
         """(B,) bool: ||x - g_m|| < r_a."""
@@ -398,11 +401,7 @@ class SkillEngine:
         ``index`` has the most likely subtask space; the row's own route on ties, else the first such route."""
         cont = self._continuation[route, index].T  # (R, B)
         dens = ld.gather(0, self._route_steps.index_select(1, index)).masked_fill(~cont, -math.inf)  # (R, B)
-        best, chosen = dens[0], torch.zeros_like(route)
-        for q in range(1, dens.shape[0]):  # running strict maximum: the first route on ties
-            better = dens[q] > best
-            chosen = torch.where(better, q, chosen)
-            best = torch.where(better, dens[q], best)
+        best, chosen = _first_max(dens)
         own = dens.gather(0, route.unsqueeze(0)).squeeze(0)
         return torch.where(own >= best, route, chosen)
 

@@ -244,10 +244,11 @@ class SkillTree:
         return branches
 
     def _step(self, position: int, m: int) -> py_trees.behaviour.Behaviour:
+        """The Selector of step m at ``position`` of its routes: Reached, else track inside A_m, else recover."""
         track = py_trees.composites.Sequence(f"track {m}", memory=False,
                                              children=[InSubtask(self.ctx, m), Track(self.ctx, m)])  # fmt: skip
-        return py_trees.composites.Selector(f"step {m}", memory=False,
-                                            children=[Reached(self.ctx, position, m), track, Recover(self.ctx, m)])  # fmt: skip
+        children = [Reached(self.ctx, position, m), track, Recover(self.ctx, m)]
+        return py_trees.composites.Selector(f"step {m}", memory=False, children=children)
 
     def tick(self, x: Tensor, *, step: int | None = None, route: int | None = None) -> TickResult:
         """Tick the tree once for the single state x in step ``step`` (None: start of the task)."""
