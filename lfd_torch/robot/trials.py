@@ -18,7 +18,8 @@ Labels (the engine's own test at the landing point, x = the tip when a jump land
 it lies inside A_m; a small jump must also land at least ``away`` m from the step's training positions.
 
 Success (:class:`SuccessCriteria`, checked per trial; the first failed check is the stored reason): the tip went
-at least ``sugar_depth`` m below the sugar surface inside the can and later left the can (above its rim); it then
+more than ``sugar_depth`` m below the sugar surface inside the can and later left the can (above its rim or outside
+its wall); it then
 reached the region above the cup (within the cup radius, between the rim and ``cup_height`` m above it); no contact
 of spoon, hand or arm with the can walls, the cup walls or the table at any time of the trial, whatever caused it (a
 force pulse that shoves the spoon into the wall fails the trial as any other contact does); joint limits held
@@ -126,6 +127,12 @@ def plan_disturbances(
     """
     if isinstance(n_trials, bool) or not isinstance(n_trials, int) or n_trials < 0:
         raise InvalidArgumentError(f"n_trials must be an int >= 0, got {n_trials!r}")
+    if not kinds or any(k not in DISTURBANCE_KINDS for k in kinds):
+        raise InvalidArgumentError(f"kinds must name at least one of {DISTURBANCE_KINDS}, got {tuple(kinds)!r}")
+    if not stages or any(isinstance(s, bool) or not isinstance(s, int) or not 0 <= s < len(stage_durations)
+                         for s in stages):
+        raise InvalidArgumentError(f"stages must name at least one stage in 0..{len(stage_durations) - 1} "
+                                   f"(one per stage duration), got {tuple(stages)!r}")
     combos = [(s, k, lab) for s in stages for k in kinds for lab in ("large", "small")]
 
     def u(lo: float, hi: float) -> float:
@@ -423,7 +430,7 @@ def run_trials(
     step_log = step_log.gather(1, idx)
     branch_log = branch_log.gather(1, idx)
     checks = check_trials(task, plant.scene, arm, tip_log, q_log, lengths_t, finished_at, contacts, crit,
-                          push_contacts=push_contacts)  # fmt: skip
+                          push_contacts=push_contacts, dt=dt)  # fmt: skip
     rows_out = []
     for i in range(B):
         d = dist[i]
@@ -490,9 +497,9 @@ def sugar_depth(scene: Scene, x: Tensor) -> Tensor:
 def check_trials(
     task: ScoopingTask, scene: Scene, arm: BaxterArm, tip: Tensor, q: Tensor, lengths: Tensor,
     finished_at: np.ndarray, contacts: Sequence[Sequence[tuple[str, str, float]]], crit: SuccessCriteria,
-    push_contacts: Sequence[Sequence[tuple[str, str, float]]] | None = None,
+    push_contacts: Sequence[Sequence[tuple[str, str, float]]] | None = None, dt: float = 0.01,
 ) -> list[dict[str, Any]]:
-    """Per-trial success checks (module docstring) on the logs (B, T, .) of :func:`run_trials`.
+    """Per-trial success checks (module docstring) on the logs (B, T, .) of :func:`run_trials`, ``dt`` s apart.
 
     ``contacts``: per trial every (part, object, time s) contact seen; each forbidden one fails ``no_contact``.
     ``push_contacts``: the subset a force pulse began (diagnostic): ``lenient_success`` ignores those, ``success``
@@ -540,7 +547,7 @@ def check_trials(
                     reason = f"contact {p}-{o} at {t:.2f} s" + (" (begun by a force pulse)" if bad[0] in excused else "")
                 elif name == "joint_limits":
                     k = int(torch.nonzero(viol[i])[0])
-                    reason = f"joint limit violated at {k * 0.01:.2f} s"
+                    reason = f"joint limit violated at {k * dt:.2f} s"
                 elif name == "finished":
                     reason = (f"final error {float(final_err[i]) * 1e3:.1f} mm" if finished_at[i] >= 0
                               else "not finished within the budget")  # fmt: skip

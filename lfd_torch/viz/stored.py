@@ -116,8 +116,6 @@ def save_demos(demos: Demos, path: str | os.PathLike[str], *, velocities: bool =
         velocities: store the velocities too; False halves the file, and :func:`load_demos` re-estimates them by
             central differences (for figures, which draw positions only).
     """
-    if "demos" in extra:
-        raise StoreError("'demos' is the demonstrations' own key")
     return save_state({"demos": _demos_state(demos, velocities), **extra}, path)
 
 
