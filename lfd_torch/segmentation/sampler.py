@@ -843,13 +843,15 @@ class _Run:
         ``slope_scale_mix``), 0 for unused states: 1/2 straight, 1/2 curved, with ``slope_scale_mix`` the curved
         half split equally between the two slope scales."""
         curved = math.log(0.25) if self.cfg.slope_scale_mix > 0 else math.log(0.5)
-        lp = torch.where(kind == 0, math.log(0.5), curved).to(self.dtype)
+        lp = torch.full(kind.shape, math.log(0.5), dtype=self.dtype, device=kind.device)
+        lp = lp.masked_fill(kind != 0, curved)  # float64 constants: torch.where on Python floats rounds to float32
         return torch.where(used, lp, torch.zeros_like(lp))
 
     def _block_scales(self, kind: Tensor) -> Tensor:
         """(..., K) each state's slope scale: ``slope_scale_mix`` for component 2, else ``slope_scale``."""
         cfg = self.cfg
-        return torch.where(kind == 2, cfg.slope_scale_mix, cfg.slope_scale).to(self.dtype)
+        return torch.full(kind.shape, cfg.slope_scale, dtype=self.dtype, device=kind.device).masked_fill(
+            kind == 2, cfg.slope_scale_mix)
 
     def _block_profile(self, s: Tensor, age: Tensor | None, w: Tensor, onehot: Tensor
                        ) -> tuple[Tensor, Tensor, Tensor]:
