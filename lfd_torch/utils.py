@@ -286,7 +286,7 @@ def check_tensor(
                                      "are needed")  # fmt: skip
     if finite and value.numel():
         limit = safe_magnitude(value.dtype) if bounded else math.inf
-        ok = value.abs() <= limit
+        ok = (value.abs() <= limit) if bounded else torch.isfinite(value)  # |inf| <= inf: Inf needs isfinite
         if not bool(ok.all()):
             what = "NaN or Inf" if not bounded else f"NaN, Inf or magnitudes above {limit:.3g} (they overflow)"
             raise NonFiniteError(f"{name} contains {what}")

@@ -218,6 +218,8 @@ class GMM:
         """
         check_int(n, "n", low=0, high=10**8)
         check_generator(generator)
+        if n == 0:  # torch.multinomial refuses to draw no samples
+            return self.means.new_zeros(0, self.dim), torch.zeros(0, dtype=torch.long, device=self.device)
         labels = torch.multinomial(self.weights, n, replacement=True, generator=generator)
         eps = torch.randn(n, self.dim, dtype=self.dtype, device=self.device, generator=generator)
         x = self.means[labels] + torch.einsum("nij,nj->ni", self._chol[labels], eps)
