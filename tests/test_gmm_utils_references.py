@@ -500,13 +500,14 @@ def test_kmeans_plus_plus_seeds_one_centre_per_far_group() -> None:
         assert len({(int(a), int(b)) for a, b in zip(lab, group)}) == 3 and len(set(lab.tolist())) == 3, seed
 
 
-@pytest.mark.xfail(strict=True, reason="BUG: kmeans_plus_plus documents 'every label used' for N >= K, but with fewer "
-                   "distinct points than K (duplicates) a label stays unused")
 def test_kmeans_plus_plus_uses_every_label_with_duplicate_points() -> None:
-    """N = 4 >= K = 3 but only two distinct points: the docstring still promises all K labels."""
-    x = torch.tensor([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0], [1.0, 1.0]], dtype=F64)
-    lab = kmeans_plus_plus(x, 3, generator=torch.Generator().manual_seed(0))
-    assert set(lab.tolist()) == {0, 1, 2}
+    """N >= K but fewer distinct points than K: the docstring still promises all K labels (coincident centres shared
+    one nearest sample, and [[0, 0] x 3, [1, 1]] with K = 3 gave [0, 0, 0, 2])."""
+    for x, K in ((torch.tensor([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0], [1.0, 1.0]], dtype=F64), 3),
+                 (torch.zeros(5, 2, dtype=F64), 3), (torch.tensor([[0.0], [0.0], [2.0], [2.0], [2.0]], dtype=F64), 4)):
+        for seed in range(5):
+            lab = kmeans_plus_plus(x, K, generator=torch.Generator().manual_seed(seed))
+            assert set(lab.tolist()) == set(range(K)), (x.tolist(), seed, lab.tolist())
 
 
 def test_lfd_runtime_errors_pass_through_solver_errors_and_device_rule() -> None:

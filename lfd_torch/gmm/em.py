@@ -105,6 +105,12 @@ def kmeans_plus_plus(x: Tensor, n_components: int, *, generator: torch.Generator
         labels = new_labels
     # every centre keeps at least its nearest sample, so all K labels are used
     nearest = _nearest(centers, x)
+    if nearest.unique().numel() < centers.shape[0]:  # coincident centres (fewer distinct points than K) share a
+        taken: list[int] = []  # nearest sample: each centre in turn takes its nearest sample not yet taken
+        for c in centers:
+            taken.append(next(i for i in torch.argsort(((x - c) ** 2).sum(-1), stable=True).tolist()
+                              if i not in taken))
+        nearest = torch.tensor(taken, device=x.device)
     labels = labels.clone()
     labels[nearest] = torch.arange(centers.shape[0], device=x.device)
     return labels
