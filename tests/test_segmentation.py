@@ -1339,6 +1339,44 @@ def test_map_search_polished_split_reaches_the_mode_the_split_alone_misses(monke
                                                                         seg.info["collapsed_log_prob"])
 
 
+def test_map_search_skips_only_moves_known_to_find_nothing(monkeypatch):
+    """Two evaluations the map search skips (``_Run._climb_to_mode``) are savings, not changes: the last ascent
+    starts from the best chain's mode of the ascent without shifts (``settled``), so its first round begins at the
+    shift step; from that mode, the ascent that tries every move in its first round reaches the same labelling and
+    score. And no ascent tries a shift step again at the labelling where the last one found nothing (two shift
+    steps in a row at one labelling, both finding nothing: on benchmark family scoop_const_3d, one demonstration,
+    case 0, sampler seed 0, the search before the change did so once)."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "experiments"))
+    from bench_segmentation import case_data
+
+    runs = capture_runs(monkeypatch)
+    climbs, steps = [], []
+    climb, shift_step = sampler_module._Run._climb_to_mode, sampler_module._Run._shift_step
+
+    def recorded_climb(self, snap, shifts=True, settled=False):
+        out = climb(self, snap, shifts, settled)
+        climbs.append((snap, shifts, settled, out))
+        return out
+
+    def recorded_step(self, s, F, *args):
+        out = shift_step(self, s, F, *args)
+        steps.append((s.clone(), F.clone(), out is None))
+        return out
+
+    monkeypatch.setattr(sampler_module._Run, "_climb_to_mode", recorded_climb)
+    monkeypatch.setattr(sampler_module._Run, "_shift_step", recorded_step)
+    seg = segment(case_data("scoop_const_3d", 0, 1).demos, generator=torch.Generator().manual_seed(0))
+    last = [c for c in climbs if c[1]]
+    assert len(last) == 1 and last[0][2], [(c[1], c[2]) for c in climbs]
+    start, _, _, kept = last[0]
+    assert torch.equal(kept["states"], seg.sampler.states)
+    assert not any(torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[2] and b[2]
+                   for a, b in zip(steps, steps[1:]))
+    full = climb(runs[-1], start, True, False)  # every move tried in the first round
+    assert torch.equal(full["states"], kept["states"]) and torch.equal(full["features"], kept["features"])
+    assert full["collapsed"] == kept["collapsed"]
+
+
 def test_map_search_scores_merges_and_reassignments_only_where_the_relabelling_has_stopped(monkeypatch):
     """Order of the map search's moves (``_Run._climb_to_mode``): a round ends at the first move kept, so the costly
     merge and reassignment candidates are scored only on a labelling whose Viterbi relabelling does not raise the

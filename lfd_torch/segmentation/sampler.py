@@ -1786,7 +1786,8 @@ class _Run:
             starts = [b for b in best if b is not None]
             polished = [self._climb_to_mode(b, shifts=False) for b in starts]
             c_best = max(range(len(polished)), key=lambda c: polished[c]["collapsed"])
-            snap = self._climb_to_mode(polished[c_best], shifts=True)  # the best mode, its boundaries moved too
+            snap = self._climb_to_mode(polished[c_best], shifts=True, settled=True)  # the best mode, its boundaries
+            # moved too
             if cfg.tolerance_correlation is None:
                 snap = self._learn_tolerance(snap)
             if (self.rho, self.sigma, self.tau_white) != (0.0, cfg.direction_noise, 0.0):
@@ -1846,10 +1847,10 @@ class _Run:
             if self._best_tolerance(snap) <= snap["collapsed"] + 1e-9 * abs(snap["collapsed"]):
                 self._set_tolerance(*current)
                 break  # the current tolerance is (one of) the best: a mode in (s, F, rho, sigma, tau)
-            snap = self._climb_to_mode(self._climb_to_mode(snap, shifts=False), shifts=True)
+            snap = self._climb_to_mode(self._climb_to_mode(snap, shifts=False), shifts=True, settled=True)
         return snap
 
-    def _climb_to_mode(self, snap: dict, shifts: bool = True) -> dict:
+    def _climb_to_mode(self, snap: dict, shifts: bool = True, settled: bool = False) -> dict:
         """``selection="map"``: coordinate ascent of the collapsed score from a sample (module docstring).
 
         Moves, each kept only when the collapsed score :meth:`_collapsed_score` rises, repeated until none does (a
@@ -1913,7 +1914,10 @@ class _Run:
                 seed 4: the birth 6.6 nats below the mode, then demonstration 3's last state given to the others'
                 5.6 above it; route {0-3} in 3 steps on seeds 4 and 6 without the move, 4 with it).
         The look-ahead and split candidates are relabelled and scored as one batch each, then taken in order (the
-        first that raises the score), which gives the same ascent as one at a time. The fields returned with it are
+        first that raises the score), which gives the same ascent as one at a time. The moves are deterministic, so
+        two evaluations that would find nothing are skipped, with the same ascent: ``settled`` (``snap`` is the
+        result of an ascent without ``shifts``) starts the first round at the shift step, and a shift step is not
+        tried again at the labelling where the last one found nothing. The fields returned with it are
         those posterior means; the joint log probability of a polished sample is
         not defined (no sampled parameters): nan.
         """
@@ -1926,15 +1930,18 @@ class _Run:
             return self._collapsed_score(s_b, f_b, duration_phases(s_b, self.D), *batch)
 
         score = score_of(s[None], F[None])[0]
+        skip = settled  # the relabel, merge and reassign moves found nothing at snap
+        stuck: tuple[Tensor, Tensor] | None = None  # where the last shift step found nothing
         while True:
             moved = False
-            s2, F2 = self._viterbi_relabel(s, F, float(hyper[0]), float(hyper[1]))
-            if not (torch.equal(s2, s) and torch.equal(F2, F)):
-                sc = score_of(s2[None], F2[None])[0]
-                if bool(sc > score):
-                    s, F, score, moved = s2, F2, sc, True
+            if not skip:
+                s2, F2 = self._viterbi_relabel(s, F, float(hyper[0]), float(hyper[1]))
+                if not (torch.equal(s2, s) and torch.equal(F2, F)):
+                    sc = score_of(s2[None], F2[None])[0]
+                    if bool(sc > score):
+                        s, F, score, moved = s2, F2, sc, True
             K = F.shape[-1]
-            if K >= 2 and not moved:
+            if K >= 2 and not moved and not skip:
                 pairs = torch.combinations(torch.arange(K, device=self.device), 2)  # (P, 2), j < k
                 j, k = pairs[:, 0].view(-1, 1, 1), pairs[:, 1].view(-1, 1, 1)
                 P = pairs.shape[0]
@@ -1963,7 +1970,8 @@ class _Run:
                         s2, F2, sc2 = self._settle(*looked[0], hyper, score_of)
                         if bool(sc2 > score):
                             s, F, score, moved = s2, F2, sc2, True
-            cand = self._reassignments(s, F) if not moved else None
+            cand = self._reassignments(s, F) if not moved and not skip else None
+            skip = False
             if cand is not None:
                 sc = self._reassignment_scores(s, F, *cand, score, hyper)
                 b = int(torch.argmax(sc))
@@ -1972,10 +1980,14 @@ class _Run:
                     sc2 = score_of(s2[None], F2[None])[0]
                     if bool(sc2 > score):
                         s, F, score, moved = s2, F2, sc2, True
-            step = self._shift_step(s, F, score, hyper, score_of) if shifts and not moved else None
+            tried = shifts and not moved and not (stuck is not None and torch.equal(stuck[0], s)
+                                                  and torch.equal(stuck[1], F))
+            step = self._shift_step(s, F, score, hyper, score_of) if tried else None
             while step is not None:  # shifts on while they raise the score, then every move again
                 (s, F, score), moved = step, True
                 step = self._shift_step(s, F, score, hyper, score_of)
+            if tried:
+                stuck = (s, F)
             splits = self._splits(s, F) if not moved else []
             if splits:  # last resort: split one state, its runs cut in two halves, then relabel (the first of
                 # them, most used state first, that raises the score; relabelled and scored as one batch)
