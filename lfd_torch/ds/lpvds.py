@@ -187,6 +187,14 @@ def solve_lpv_matrices(
     N, d = x.shape
     if gamma.ndim != 2 or gamma.shape[0] != N:
         raise ShapeMismatchError(f"gamma must have shape ({N}, K), got {tuple(gamma.shape)}")
+    check_tensor(gamma, "gamma")
+    rows = gamma.to(torch.float64).sum(-1)
+    if bool((gamma < 0).any()) or not torch.allclose(rows, torch.ones_like(rows), atol=1e-6):
+        raise InvalidArgumentError("gamma: responsibilities must be >= 0 with rows summing to 1")
+    check_tensor(attractor, "attractor", ndim=1, last_dim=d, shape_hint=f"({d},)")
+    check_tensor(P, "P", ndim=2, last_dim=d, shape_hint=f"({d}, {d})")
+    if P.shape[0] != d:
+        raise ShapeMismatchError(f"P must have shape ({d}, {d}), got {tuple(P.shape)}")
     check_float(eps, "eps", low=0.0, low_open=True)
     check_float(ridge, "ridge", low=0.0)
     K = gamma.shape[1]
