@@ -1377,6 +1377,114 @@ def test_map_search_skips_only_moves_known_to_find_nothing(monkeypatch):
     assert full["collapsed"] == kept["collapsed"]
 
 
+def test_joint_shifts_move_one_switch_by_the_same_offset_in_every_sequence_that_makes_it(monkeypatch):
+    """The joint-shift candidates (``_Run._joint_shifts``) against their definition, checked per candidate from its
+    switches: the run states of every sequence are unchanged; exactly one kind of switch a -> b, made by two or more
+    sequences, moved, by the same offset 1 <= |delta| <= D in every sequence that makes it, every other switch in
+    place; every run at least D long; and every (a -> b, delta) whose moves keep the runs D long is a candidate,
+    once. On a segmentation's labelling and on a hand-made one with switches made by one sequence only and runs
+    D + 1 long."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "experiments"))
+    from bench_segmentation import case_data
+
+    runs = capture_runs(monkeypatch)
+    seg = segment(case_data("straight_const_2d", 1, 4).demos, generator=torch.Generator().manual_seed(0))
+    run = runs[-1]
+    D, lengths = run.D, run.lengths.tolist()
+
+    def switches(labels):  # per sequence: [(grid point, state before, state after)]
+        out = []
+        for i, n in enumerate(lengths):
+            row = labels[i, :n].tolist()
+            out.append([(t, row[t - 1], row[t]) for t in range(1, n) if row[t] != row[t - 1]])
+        return out
+
+    def check(s, F):
+        base = switches(s)
+        pairs = collections.Counter((a, b) for sw in base for a, b in {(a, b) for _, a, b in sw})
+        expected = set()
+        for (a, b), n_seq in pairs.items():
+            for delta in [d for d in range(-D, D + 1) if d]:
+                ok = n_seq >= 2
+                for i, sw in enumerate(base):
+                    bounds = [0] + [t for t, _, _ in sw] + [lengths[i]]
+                    for r, (t, x, y) in enumerate(sw):
+                        if (x, y) == (a, b) and not (t + delta - bounds[r] >= D and bounds[r + 2] - t - delta >= D):
+                            ok = False
+                if ok:
+                    expected.add((a, b, delta))
+        cand_s, cand_f = run._joint_shifts(s, F)
+        assert torch.equal(cand_f, F.expand_as(cand_f))
+        found = []
+        for c in cand_s:
+            moved = switches(c)
+            deltas = set()
+            for sw0, sw1 in zip(base, moved):
+                assert [(a, b) for _, a, b in sw0] == [(a, b) for _, a, b in sw1]  # the same run states
+                deltas |= {(a, b, t1 - t0) for (t0, a, b), (t1, _, _) in zip(sw0, sw1) if t1 != t0}
+            assert len(deltas) == 1, deltas
+            (a, b, delta), = deltas
+            for sw0, sw1 in zip(base, moved):  # every a -> b switch moved by delta, every other one in place
+                assert all(t1 - t0 == (delta if (x, y) == (a, b) else 0)
+                           for (t0, x, y), (t1, _, _) in zip(sw0, sw1))
+            for i, sw in enumerate(moved):
+                bounds = [0] + [t for t, _, _ in sw] + [lengths[i]]
+                assert min(hi - lo for lo, hi in zip(bounds, bounds[1:])) >= D
+            found.append((a, b, delta))
+        assert len(found) == len(set(found)) and set(found) == expected and expected
+        return expected
+
+    check(seg.sampler.states, seg.sampler.features)
+    # 0 -> 1 in sequences 0, 1 and 3 (sequence 0's run of 1 is D + 1 long), 1 -> 2 in 0 and 3, 1 -> 3 and 0 -> 2
+    # in one sequence each
+    plan = [[(0, 20), (1, D + 1), (2, None)], [(0, 22), (1, 15), (3, None)], [(0, 25), (2, None)],
+            [(0, 18), (1, 20), (2, None)]]
+    s = torch.zeros(run.N, run.T, dtype=torch.long)
+    for i, legs in enumerate(plan):
+        t = 0
+        for state, n in legs:
+            n = run.T - t if n is None else n
+            s[i, t : t + n] = state
+            t += n
+    F = torch.nn.functional.one_hot(s, 4).any(1)
+    pairs = {(a, b) for a, b, _ in check(s, F)}
+    assert pairs == {(0, 1), (1, 2)}, pairs
+
+
+def test_joint_shift_reaches_the_better_mode_that_single_shifts_miss(monkeypatch):
+    """The joint-shift move of the map search, on the case that motivated it (benchmark family scoop_const_3d,
+    4 demonstrations, case 4, sampler seed 0): without it the search stops with the hook's start 3-5 grid points
+    late in every demonstration, below the true labelling's collapsed score (a search miss: no single shift raises
+    the score, the hook's field being shared); with it, the same step counts, a collapsed score above both, and every
+    switch within one grid point of the truth."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "experiments"))
+    from diagnose_segmentation import case_labellings
+
+    monkeypatch.setattr(sampler_module, "_JOINT_SHIFTS", False)
+    seg0, run, truth = case_labellings("scoop_const_3d", 4, 4)
+    monkeypatch.setattr(sampler_module, "_JOINT_SHIFTS", True)
+    seg1, _, _ = case_labellings("scoop_const_3d", 4, 4)
+    res = seg0.sampler
+    hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
+             for k in ("transition_concentration", "stickiness", "feature_mass")]
+
+    def score(labels, features):
+        return float(run._collapsed_score(labels[None], features[None], sampler_module.duration_phases(
+            labels[None], run.D), *hyper)[0])
+
+    true_score = score(truth, torch.ones(run.N, int(truth.max()) + 1, dtype=torch.bool))
+    before, after = score(res.states, res.features), score(seg1.sampler.states, seg1.sampler.features)
+    assert before < true_score < after, (before, true_score, after)
+    assert [len(seg1.step_sequence(i)) for i in range(run.N)] == [len(seg0.step_sequence(i)) for i in range(run.N)]
+    for i in range(run.N):
+        n = int(run.lengths[i])
+        found = (torch.nonzero(seg1.sampler.states[i, 1:n] != seg1.sampler.states[i, : n - 1]).view(-1) + 1)
+        true = (torch.nonzero(truth[i, 1:n] != truth[i, : n - 1]).view(-1) + 1)
+        old = (torch.nonzero(res.states[i, 1:n] != res.states[i, : n - 1]).view(-1) + 1)
+        assert found.shape == true.shape and int((found - true).abs().max()) <= 1, (found, true)
+        assert int((old - true).abs().max()) >= 3, (old, true)
+
+
 def test_map_search_scores_merges_and_reassignments_only_where_the_relabelling_has_stopped(monkeypatch):
     """Order of the map search's moves (``_Run._climb_to_mode``): a round ends at the first move kept, so the costly
     merge and reassignment candidates are scored only on a labelling whose Viterbi relabelling does not raise the
