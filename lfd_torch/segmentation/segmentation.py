@@ -606,13 +606,15 @@ def velocity_noise(sigma_x: float, length: int, stride: int, dt: float, half_wid
     h = stride if half_width is None else int(half_width)
     idx = torch.arange(length, dtype=torch.float64, device="cpu")
     n = (idx + h).clamp_max(length - 1) - (idx - h).clamp_min(0) + 1
+    # sum_j (j - jbar)^2 is at least 1/2 for n >= 2 (a two-sample window at an end when h = 1: the slope is a
+    # difference, of noise sqrt(2) sigma / dt); the floor only keeps a one-sample window (h = 0) finite
     if rho == 0.0:
-        sjj = (n * (n * n - 1.0) / 12.0).clamp_min(1.0)
+        sjj = (n * (n * n - 1.0) / 12.0).clamp_min(0.5)
         return sigma_x / (dt * sjj.sqrt())
     gain = {}  # window length -> sum_ij a_i a_j rho^|i - j|
     for m in sorted({int(v) for v in n.tolist()}):
         j = torch.arange(m, dtype=torch.float64, device="cpu")
-        a = (j - j.mean()) / max(float((j - j.mean()).square().sum()), 1.0)
+        a = (j - j.mean()) / max(float((j - j.mean()).square().sum()), 0.5)
         gain[m] = float(a @ (rho ** (j.unsqueeze(0) - j.unsqueeze(1)).abs()) @ a)
     return sigma_x * torch.tensor([gain[int(v)] for v in n.tolist()], dtype=torch.float64, device="cpu").sqrt() / dt
 
