@@ -304,7 +304,6 @@ _LOOKAHEAD = 4  # map search: merges tried with a relabelling after them when no
 _SHIFT_CHUNK = 512  # map search: shift candidates scored per batch (memory ~ chunk x N T x 3)
 _BIRTH_FRACTIONS = (1 / 3, 1 / 2, 2 / 3)  # map search, shared births: where the runs next to a state are cut
 _POLISH_STEPS = 3  # map search: most shift moves that polish the best split (each ~0.1 s on 7 LASA demonstrations)
-_JOINT_SHIFTS = True  # map search: the joint-shift move (a switch moved in every sequence at once); off: the search before it
 _SETTLE_STEPS = 10  # map search: most relabellings that settle the best look-ahead merge (each ~10 ms on 7 LASA demos)
 _POSITION_SCALE = 0.05  # prior expected covariance of a state's positions / the data's variance, per axis
 _SHARE_CACHE = 20_000  # block emission: distinct sequence shares kept (_sequence_terms); LASA Multi_Models_3: +130 MB peak
@@ -1913,18 +1912,7 @@ class _Run:
                 then the best reassignment, the best polished by shifts. A step the demonstrations share that no one
                 state carries is two moves away, each of which lowers the score alone (LASA Multi_Models_4, sampler
                 seed 4: the birth 6.6 nats below the mode, then demonstration 3's last state given to the others'
-                5.6 above it; route {0-3} in 3 steps on seeds 4 and 6 without the move, 4 with it);
-            joint shift (with ``shifts``, only when none of the above raises the score, :meth:`_joint_shifts`): a
-                switch a -> b moved by the same 1 to D grid points (the grid is one of path length) in every sequence
-                that makes it, every such candidate scored in full in one batch, the best kept when it raises the
-                score. The demonstrations share a step's field, so moving the switch of one sequence alone can lower
-                the score where moving all of them raises it: a blocked coordinate step over the sequences, as the
-                shift step's composite moves are over the switches of one sequence, but taken also when no single
-                move rises (benchmark family scoop_const_3d, 4 demonstrations, case 4, sampler seed 0: the hook's
-                start 3-5 grid points late in every demonstration, 19.3 nats below the true labelling; with the
-                move 11.6 nats above it, every switch within a grid point of the truth). It moves switches only, so
-                it changes no step count by itself, and being tried last it can only raise the mode the search
-                returned before it.
+                5.6 above it; route {0-3} in 3 steps on seeds 4 and 6 without the move, 4 with it).
         The look-ahead and split candidates are relabelled and scored as one batch each, then taken in order (the
         first that raises the score), which gives the same ascent as one at a time. The moves are deterministic, so
         two evaluations that would find nothing are skipped, with the same ascent: ``settled`` (``snap`` is the
@@ -2022,56 +2010,11 @@ class _Run:
                 step = self._shared_birth_step(s, F, score, hyper, score_of)
                 if step is not None:
                     (s, F, score), moved = step, True
-            if shifts and not moved and _JOINT_SHIFTS:
-                cand = self._joint_shifts(s, F)
-                if cand is not None:
-                    sc = score_of(*cand)
-                    b = int(torch.argmax(sc))
-                    if bool(sc[b] > score):
-                        s, F, score, moved = cand[0][b], cand[1][b], sc[b], True
             if not moved:
                 break
         field, noise = self._posterior_mean_fields(s, F.shape[-1])
         return {**snap, "states": s, "features": F, "field": field, "noise": noise, "joint": math.nan,
                 "collapsed": float(score)}
-
-    def _joint_shifts(self, s: Tensor, F: Tensor) -> tuple[Tensor, Tensor] | None:
-        """The joint-shift move of :meth:`_climb_to_mode`: for every switch a -> b that two or more sequences make,
-        and every offset of 1 to D grid points either way, that switch moved by the offset in every sequence that
-        makes it (every run then at least D long, else the candidate is dropped): (P, N, T) labels and (P, N, K)
-        features (unchanged). A step's field is shared, so moving its switch in one sequence alone may lower the score
-        where moving it in all raises it."""
-        D = self.D
-        runs = _runs(s, self.lengths)
-        where: dict[tuple[int, int], list[tuple[int, int]]] = {}  # (a, b) -> [(sequence, run index of a)]
-        for i, run in enumerate(runs):
-            for r in range(len(run) - 1):
-                where.setdefault((run[r][2], run[r + 1][2]), []).append((i, r))
-        out = []
-        for (a, b), at in where.items():
-            if len({i for i, _ in at}) < 2:
-                continue
-            for delta in [d for d in range(-D, D + 1) if d]:
-                s2 = s.clone()
-                ok = True
-                for i, r in at:
-                    (lo, c, _), (_, hi, _) = runs[i][r], runs[i][r + 1]
-                    new = c + delta
-                    if new - lo < D or hi - new < D:
-                        ok = False
-                        break
-                    if delta > 0:
-                        s2[i, c:new] = a
-                    else:
-                        s2[i, new:c] = b
-                if ok:
-                    out.append(s2)
-        if not out:
-            return None
-        cand = torch.stack(out)
-        cand = torch.where(self.valid, cand, torch.gather(cand, 2, (self.lengths - 1).view(1, -1, 1).expand(
-            cand.shape[0], -1, 1)))
-        return cand, F.unsqueeze(0).expand(cand.shape[0], -1, -1).clone()
 
     def _shared_births(self, s: Tensor, F: Tensor) -> list[tuple[Tensor, Tensor]]:
         """Candidates of the shared-birth move of :meth:`_climb_to_mode`: for each state j, side (the runs that
