@@ -51,8 +51,11 @@ after the sampler creates, removes, merges or moves a step across a state switch
        each velocity's least-squares line at its own sample, whose noise is (2 k + 1)^(1/2) times smaller (a strongly
        curved field turns position noise into direction noise): every switch on 85.4 % of the 280 synthetic cases
        against 86.4 %, the constant-speed scoop unchanged (0 / 1 of 10); the velocity noise dominates there.
-       Each switch is then placed at full rate by the same likelihood: between the two states that the model put
-       on either side, the change point posterior p(t) ∝ exp(sum_{t' < t} l_a(t') + sum_{t' >= t} l_b(t')) / k)
+       Each switch is then placed at full rate by the direction emission's likelihood (the sampler's own with
+       ``block_emission=False``; under the block emission, whose evidence is one of block means with no full-rate
+       form, it is another likelihood than the one that chose the labelling, and it can move a switch by more than
+       a grid interval: ``experiments/segmentation_studies.md``, "The full-rate switch refinement confined near the
+       sampler's switch"): between the two states that the model put on either side, the change point posterior p(t) ∝ exp(sum_{t' < t} l_a(t') + sum_{t' >= t} l_b(t')) / k)
        over t between the midpoints of the neighbouring runs, l the field log-likelihood of the full-rate samples
        (each weighted 1 / k because k full-rate samples carry the information of one grid point) under the fields
        of the two states in the returned sample; the switch is its median. l is the additive noise model of
