@@ -1786,8 +1786,8 @@ class _Run:
             starts = [b for b in best if b is not None]
             polished = [self._climb_to_mode(b, shifts=False) for b in starts]
             c_best = max(range(len(polished)), key=lambda c: polished[c]["collapsed"])
-            snap = self._climb_to_mode(polished[c_best], shifts=True, settled=True)  # the best mode, its boundaries
-            # moved too
+            # the best mode, its boundaries moved too
+            snap = self._climb_to_mode(polished[c_best], shifts=True, settled=True)
             if cfg.tolerance_correlation is None:
                 snap = self._learn_tolerance(snap)
             if (self.rho, self.sigma, self.tau_white) != (0.0, cfg.direction_noise, 0.0):

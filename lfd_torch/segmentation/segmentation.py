@@ -55,9 +55,10 @@ after the sampler creates, removes, merges or moves a step across a state switch
        ``block_emission=False``; under the block emission, whose evidence is one of block means with no full-rate
        form, it is another likelihood than the one that chose the labelling, and it can move a switch by more than
        a grid interval: ``experiments/segmentation_studies.md``, "The full-rate switch refinement confined near the
-       sampler's switch"): between the two states that the model put on either side, the change point posterior p(t) ∝ exp(sum_{t' < t} l_a(t') + sum_{t' >= t} l_b(t')) / k)
-       over t between the midpoints of the neighbouring runs, l the field log-likelihood of the full-rate samples
-       (each weighted 1 / k because k full-rate samples carry the information of one grid point) under the fields
+       sampler's switch"): between the two states that the model put on either side, the change point posterior
+       p(t) ∝ exp(sum_{t' < t} l_a(t') + sum_{t' >= t} l_b(t')) / k) over t between the midpoints of the
+       neighbouring runs, l the field log-likelihood of the full-rate samples (each weighted 1 / k because k
+       full-rate samples carry the information of one grid point) under the fields
        of the two states in the returned sample; the switch is its median. l is the additive noise model of
        :mod:`.field`, u_t ~ t(B_k z_t, Psi_k + c_t I) with c_t = sigma_v,t^2 / s_t^2 the propagated velocity noise,
        of which the sampler's Psi_k / w_t is the conjugate form (the two agree at full speed and for
