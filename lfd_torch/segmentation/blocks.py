@@ -191,7 +191,9 @@ def block_sequence_terms(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, 
     # Omega: tridiagonal per sequence, the padded increments unit-variance
     diag = torch.where(inc, var[..., 1:] + var[..., :-1], torch.ones_like(ds)).expand(B, N, M)
     diag = diag + is_curved * (ds * tolerance) ** 2 + switch * ds**2
-    off = -(var[..., 1:-1] * (inc[..., 1:] & inc[..., :-1])).expand(B, N, M - 1)
+    # masked by where, not by a product: a padded block's variance is never read (NaN * 0 is NaN)
+    both = inc[..., 1:] & inc[..., :-1]
+    off = -torch.where(both, var[..., 1:-1], torch.zeros_like(var[..., 1:-1])).expand(B, N, M - 1)
     # X per sequence, only its nonzero columns, per state [direction, p field coefficients, the sequence's own turn,
     # its own offset]: each increment's row written into its own state's slot. The own columns of different
     # sequences never meet, so they are eliminated per sequence (a Schur complement) before the shared ones.
