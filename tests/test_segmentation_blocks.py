@@ -9,7 +9,7 @@ from scipy.stats import multivariate_normal
 
 from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
 from lfd_torch.segmentation import segment
-from lfd_torch.segmentation.blocks import BlockMeans, block_log_evidence, block_means, block_posterior_means
+from lfd_torch.segmentation.blocks import BlockMeans, block_log_evidence, block_means
 from lfd_torch.segmentation.sampler import BetaProcessHMMSampler
 from conftest import capture_runs
 
@@ -31,13 +31,6 @@ def test_block_means_are_the_means_of_the_samples_nearest_each_grid_point():
 def _written_out_evidence(xbar, sbar, var, zmid, valid, labels, straight, tol, spread, slope):
     """log N(y; 0, Omega + X Lambda X^T) of one labelling (N, T), every column and covariance entry by loops;
     ``slope`` one scale for every state or a list of one per state."""
-    X, omega, prior, y, _ = _written_out_model(xbar, sbar, var, zmid, valid, labels, straight, tol, spread, slope)
-    cov = omega + X @ np.diag(prior) @ X.T
-    return sum(multivariate_normal(np.zeros(len(y)), cov).logpdf(y[:, a]) for a in range(y.shape[1]))
-
-
-def _written_out_model(xbar, sbar, var, zmid, valid, labels, straight, tol, spread, slope):
-    """X, Omega, the prior variances, y and the coefficients' names of :func:`_written_out_evidence`."""
     N, T, d = xbar.shape
     p = d + 1
     M = T - 1
@@ -72,9 +65,10 @@ def _written_out_model(xbar, sbar, var, zmid, valid, labels, straight, tol, spre
                 X[r, names.index(f"B{a}_{c}")] = ds * float(zmid[i, j, c])
             X[r, names.index(f"c{a}_{i}")] = ds
             omega[r, r] += (ds * tol) ** 2
+    cov = omega + X @ np.diag([prior[n] for n in names]) @ X.T
     y = np.stack([(xbar[i, j + 1] - xbar[i, j]).numpy() if bool(valid[i, j] and valid[i, j + 1]) else np.zeros(d)
                   for i, j in rows])
-    return X, omega, np.array([prior[n] for n in names]), y, names
+    return sum(multivariate_normal(np.zeros(len(rows)), cov).logpdf(y[:, a]) for a in range(d))
 
 
 def test_block_evidence_is_the_gaussian_of_its_written_out_model():
@@ -112,88 +106,6 @@ def test_block_evidence_is_the_gaussian_of_its_written_out_model():
         ref = _written_out_evidence(xbar, sbar, var, zmid, valid, labels[b], straight[b], tol, spread,
                                     scales[b].tolist())
         assert float(mine[b]) == pytest.approx(ref, abs=1e-8)
-
-
-def test_block_posterior_means_solve_the_written_out_gaussian_posterior():
-    """The coefficients' posterior means of one labelling (two sequences, three states, one straight; a slope scale
-    per state) are (Lambda^-1 + X^T Omega^-1 X)^-1 X^T Omega^-1 y of the written-out model (numpy), mapped back to
-    [direction, field] per state and [turn, offset] per sequence and state."""
-    g = torch.Generator().manual_seed(3)
-    N, T, d = 2, 10, 2
-    xbar = torch.randn(N, T, d, generator=g, dtype=torch.float64).cumsum(1) * 0.1
-    sbar = torch.rand(N, T, generator=g, dtype=torch.float64).cumsum(1) * 0.1
-    var = 0.001 + 0.001 * torch.rand(N, T, generator=g, dtype=torch.float64)
-    z = torch.cat([xbar, torch.ones(N, T, 1, dtype=torch.float64)], -1)
-    zmid = 0.5 * (z[:, 1:] + z[:, :-1])
-    valid = torch.ones(N, T, dtype=torch.bool)
-    valid[1, 8:] = False
-    labels = torch.tensor([[0, 0, 0, 1, 1, 1, 1, 2, 2, 2], [2, 2, 2, 2, 0, 0, 0, 0, 1, 1]])
-    straight = torch.tensor([True, False, False])
-    scales = [1.0, 3.0, 0.5]
-    tol, spread = 0.2, 0.05
-    shared, own = block_posterior_means(xbar, sbar, var, zmid, valid, labels, straight, tolerance=tol,
-                                        spread=spread, slope_scale=torch.tensor(scales, dtype=torch.float64))
-    X, omega, prior, y, names = _written_out_model(xbar, sbar, var, zmid, valid, labels, straight, tol, spread, scales)
-    inv = np.linalg.inv(omega)
-    mean = np.linalg.solve(np.diag(1.0 / prior) + X.T @ inv @ X, X.T @ inv @ y)
-    ref_shared, ref_own = np.zeros((3, d + 2, d)), np.zeros((N, 3, 2, d))
-    for n, m in zip(names, mean):
-        k, rest = int(n[1]), n[2:]
-        if n[0] == "b" and not rest:
-            ref_shared[k, 0] = m
-        elif n[0] == "b":
-            ref_own[int(rest[1:]), k, 0] = m
-        elif n[0] == "B":
-            ref_shared[k, 1 + int(rest[1:])] = m
-        else:
-            ref_own[int(rest[1:]), k, 1] = m
-    np.testing.assert_allclose(shared.numpy(), ref_shared, atol=1e-10)
-    np.testing.assert_allclose(own.numpy(), ref_own, atol=1e-10)
-    assert np.abs(ref_shared[0, 1:]).max() == 0 and np.abs(ref_shared[1:, 0]).max() == 0  # unseen: prior mean 0
-
-
-def test_block_switch_scores_are_the_written_out_gaussian_of_each_switch_time():
-    """The full-rate change-point scores under the block emission (segmentation._block_switch_scores) against a
-    loop over every switch time tau: the increments of the window written out one by one (mean ds (b_k + b_ik)
-    for the straight state before tau, ds (B_k^T zmid + o_ik) and the tolerance's variance ds h sigma_u^2 for the
-    curved one after it, the increment into tau free with variance ds^2, the shared-sample covariance -sigma^2),
-    scipy's Gaussian; equal up to one constant for all tau. Both orders of the two states."""
-    from lfd_torch.segmentation.sampler import BlockFit
-    from lfd_torch.segmentation.segmentation import _block_switch_scores
-
-    g = torch.Generator().manual_seed(4)
-    T, d = 40, 2
-    x = torch.randn(T, d, generator=g, dtype=torch.float64).cumsum(0) * 0.05
-    length = torch.rand(T, generator=g, dtype=torch.float64).cumsum(0) * 0.02
-    shared = torch.randn(3, d + 2, d, generator=g, dtype=torch.float64)
-    own = 0.05 * torch.randn(3, 2, d, generator=g, dtype=torch.float64)
-    fit = BlockFit(straight=torch.tensor([True, False, True]), shared=shared, own=own.unsqueeze(0), tolerance=0.3)
-    noise, h, lo, hi = 0.002, 0.1, 12, 25
-    for a, b in ((0, 1), (1, 0)):
-        mine = _block_switch_scores(x, length, fit, own, a, b, lo, hi, noise, h)
-        ref = []
-        for tau in range(lo, hi + 1):
-            js = list(range(lo - 1, hi))
-            mean, cov = np.zeros((len(js), d)), np.zeros((len(js), len(js)))
-            for r, j in enumerate(js):
-                ds = max(float(length[j + 1] - length[j]), 0.0)
-                cov[r, r] = 2 * noise
-                if r + 1 < len(js):
-                    cov[r, r + 1] = cov[r + 1, r] = -noise
-                if j + 1 == tau:
-                    cov[r, r] += h**2
-                    continue
-                k = a if j + 1 < tau else b
-                if bool(fit.straight[k]):
-                    mean[r] = ds * (shared[k, 0] + own[k, 0]).numpy()
-                else:
-                    zm = np.append(0.5 * (x[j] + x[j + 1]).numpy(), 1.0)
-                    mean[r] = ds * (zm @ shared[k, 1:].numpy() + own[k, 1].numpy())
-                    cov[r, r] += ds * h * 0.3**2
-            y = np.stack([(x[j + 1] - x[j]).numpy() for j in js])
-            ref.append(sum(multivariate_normal(mean[:, c], cov).logpdf(y[:, c]) for c in range(d)))
-        ref = np.array(ref)
-        np.testing.assert_allclose((mine - mine[0]).numpy(), ref - ref[0], atol=1e-7)
 
 
 def test_block_evidence_rejects_zero_or_nonfinite_block_variances():

@@ -61,8 +61,7 @@ from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
 from lfd_torch.segmentation.states import used_states
 
 __all__ = ["BlockMeans", "BlockTerms", "block_means", "block_sequence_terms", "combine_block_terms",
-           "block_log_evidence", "block_posterior_means", "block_increment_moments", "check_block_variances",
-           "state_slots", "tridiagonal_whiten", "DEMO_SPREAD"]
+           "block_log_evidence", "check_block_variances", "state_slots", "DEMO_SPREAD"]
 
 #: omega, the prior scale (rad) of each demonstration's own turn of a straight state's direction: demonstrations put
 #: their corners a few percent of a leg apart, which turns a leg by a few degrees (the benchmark's jitter, 2 % of the
@@ -212,7 +211,7 @@ def block_sequence_terms(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, 
     Z[..., :Q].unflatten(-1, (R, w)).scatter_(3, slot.movedim(-1, 0).reshape(M, B, N, 1, 1).expand(M, B, N, 1, w),
                                               row.movedim(-2, 0).unsqueeze(3))
     Z[..., Q:] = y.movedim(-2, 0)
-    logdet_omega = tridiagonal_whiten(diag.movedim(-1, 0), off.movedim(-1, 0), Z)
+    logdet_omega = _tridiagonal_whiten(diag.movedim(-1, 0), off.movedim(-1, 0), Z)
     Zb = Z.view(M, B * N, Q + d).permute(1, 2, 0)  # (B N, Q + d, M)
     full_gram = (Zb @ Zb.transpose(-1, -2)).view(B, N, Q + d, Q + d)  # [W, v]^T [W, v]
     G, c = full_gram[..., :Q, :Q], full_gram[..., :Q, Q:]  # (B, N, Q, Q), (B, N, Q, d)
@@ -239,7 +238,7 @@ def block_sequence_terms(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, 
     return BlockTerms(gram=gram, proj=proj, const=const, at=at, columns=K * (1 + p))
 
 
-def tridiagonal_whiten(diag: Tensor, off: Tensor, Z: Tensor) -> Tensor:
+def _tridiagonal_whiten(diag: Tensor, off: Tensor, Z: Tensor) -> Tensor:
     """Overwrite Z (M, ..., Q) with L^-1 Z and return log|Omega| (...), for the tridiagonal Omega (M x M per
     batch element) of diagonal ``diag`` (M, ...) and off-diagonal ``off`` (M - 1, ...), L its Cholesky factor (lower
     bidiagonal: l_j on the diagonal, m_j = off_j / l_j below it). Two recurrences along the M increments, one
@@ -292,78 +291,6 @@ def block_log_evidence(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, va
     terms = block_sequence_terms(xbar, sbar, var, zmid, valid, labels, straight, tolerance=tolerance, spread=spread,
                                  slope_scale=slope_scale)
     return combine_block_terms(*terms.totals(), slope_scale=slope_scale)
-
-
-def _prior_variances(K: int, d: int, slope_scale: float | Tensor, like: Tensor) -> Tensor:
-    """(K (1 + p),) the shared coefficients' prior variances per state [direction 1 / d, slopes s^2, offset 1]."""
-    scale = torch.as_tensor(slope_scale, dtype=like.dtype, device=like.device).expand(K)
-    return torch.cat([torch.full_like(scale, 1.0 / d).unsqueeze(-1), (scale**2).unsqueeze(-1).expand(K, d),
-                      torch.ones_like(scale).unsqueeze(-1)], -1).flatten()
-
-
-def block_posterior_means(xbar: Tensor, sbar: Tensor, var: Tensor, zmid: Tensor, valid: Tensor, labels: Tensor,
-                          straight: Tensor, *, tolerance: float, spread: float, slope_scale: float | Tensor
-                          ) -> tuple[Tensor, Tensor]:
-    """Posterior means of the coefficients of one labelling under the block emission (module docstring, "Model").
-
-    Args: those of :func:`block_log_evidence` for a single labelling: labels (N, T) long, straight (K,) bool,
-    slope_scale a float or (K,).
-
-    Returns:
-        shared (K, 1 + p, d): per state [b_k, the p rows of B_k (slopes, then offset)] (a straight state's field rows
-        and a curved state's direction are 0, their prior mean: no increment sees them);
-        own (N, K, 2, d): per sequence and state [its own turn b_ik, its own offset o_ik].
-    The Gaussian posterior A^-1 X^T Omega^-1 y with A = Lambda^-1 + X^T Omega^-1 X, all coefficients at once (one
-    labelling: no Schur complement is needed), X and Omega those of :func:`block_sequence_terms` and whitened by the
-    same recurrence.
-    """
-    N, T, d = xbar.shape
-    K = straight.shape[0]
-    p, M = d + 1, T - 1
-    inc = valid[:, 1:] & valid[:, :-1]
-    ds = (sbar[:, 1:] - sbar[:, :-1]).clamp_min(0.0) * inc
-    y = (xbar[:, 1:] - xbar[:, :-1]) * inc.unsqueeze(-1)  # (N, M, d)
-    same = (labels[:, 1:] == labels[:, :-1]) & inc
-    own = labels[:, 1:]
-    is_straight = straight[own] & same
-    is_curved = same & ~is_straight
-    diag = torch.where(inc, var[:, 1:] + var[:, :-1], torch.ones_like(ds))
-    diag = diag + is_curved * (ds * tolerance) ** 2 + (inc & ~same) * ds**2
-    off = -torch.where(inc[:, 1:] & inc[:, :-1], var[:, 1:-1], torch.zeros_like(var[:, 1:-1]))
-    Qs, Ql = K * (1 + p), N * K * 2
-    X = xbar.new_zeros(N, M, Qs + Ql)
-    st, cu = (is_straight * ds).unsqueeze(-1), (is_curved * ds).unsqueeze(-1)
-    X.scatter_(-1, (own * (1 + p)).unsqueeze(-1), st)
-    X.scatter_add_(-1, own.unsqueeze(-1) * (1 + p) + 1 + torch.arange(p, device=own.device), cu * zmid)
-    local = Qs + (torch.arange(N, device=own.device).unsqueeze(-1) * K + own) * 2  # (N, M) the turn's column
-    X.scatter_add_(-1, local.unsqueeze(-1), st)
-    X.scatter_add_(-1, local.unsqueeze(-1) + 1, cu)
-    Z = torch.cat([X, y], -1).movedim(1, 0).contiguous()  # (M, N, Q + d)
-    tridiagonal_whiten(diag.movedim(-1, 0), off.movedim(-1, 0), Z)
-    Zf = Z.reshape(M * N, -1)
-    gram = Zf.T @ Zf  # [X, y]^T Omega^-1 [X, y]
-    prior = torch.cat([_prior_variances(K, d, slope_scale, xbar), xbar.new_full((Ql,), spread**2)])
-    Q = Qs + Ql
-    chol = torch.linalg.cholesky(gram[:Q, :Q] + torch.diag(1.0 / prior))
-    mean = torch.cholesky_solve(gram[:Q, Q:], chol)  # (Q, d)
-    return mean[:Qs].view(K, 1 + p, d), mean[Qs:].view(N, K, 2, d)
-
-
-def block_increment_moments(shared: Tensor, own: Tensor, ds: Tensor, zmid: Tensor, state: Tensor,
-                            straight: Tensor, *, tolerance: float, spacing: Tensor | float) -> tuple[Tensor, Tensor]:
-    """Mean (..., d) and added variance (...) per axis of increments of one sequence under given states, the
-    coefficients at their posterior means (:func:`block_posterior_means`; ``own`` (K, 2, d) that sequence's).
-
-    An increment over a path length ``ds`` (...) with midpoint regressors ``zmid`` (..., p) of state ``state``
-    (..., long) moves ds (b_k + b_ik) when the state is straight and ds (B_k^T zmid + o_ik) when curved, the latter
-    with the tolerance's random walk: variance ds * spacing * sigma_u^2, which over the increments of one grid
-    interval of path length ``spacing`` adds up to the block emission's (spacing sigma_u)^2."""
-    is_straight = straight[state].unsqueeze(-1)
-    direction = shared[state, 0] + own[state, 0]
-    field = (zmid.unsqueeze(-1) * shared[state, 1:]).sum(-2) + own[state, 1]
-    mean = ds.unsqueeze(-1) * torch.where(is_straight, direction, field)
-    extra = torch.where(is_straight[..., 0], torch.zeros_like(ds), ds * spacing * tolerance**2)
-    return mean, extra
 
 
 def check_block_variances(var: Tensor, valid: Tensor) -> None:

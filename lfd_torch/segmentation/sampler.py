@@ -278,7 +278,6 @@ from lfd_torch.segmentation.blocks import (
     DEMO_SPREAD,
     BlockMeans,
     BlockTerms,
-    block_posterior_means,
     block_sequence_terms,
     check_block_variances,
     combine_block_terms,
@@ -298,7 +297,7 @@ from lfd_torch.segmentation.transitions import (
     transition_matrix,
 )
 
-__all__ = ["SamplerResult", "BlockFit", "BetaProcessHMMSampler", "HYPERPARAMETER_RANGES", "check_hyperparameters"]
+__all__ = ["SamplerResult", "BetaProcessHMMSampler", "HYPERPARAMETER_RANGES", "check_hyperparameters"]
 
 _NEG_INF = float("-inf")
 _LOOKAHEAD = 4  # map search: merges tried with a relabelling after them when no merge alone raises the score
@@ -317,23 +316,6 @@ _BLOCK = 2  # features whose flips share one batched forward pass (2^2 - 1 = 3 v
 # turn it off while they capture runs, so that the run's state is made of normal tensors (an inference tensor cannot
 # be updated in place outside inference mode); the results are the same.
 _INFERENCE_MODE = True
-
-
-@dataclass(frozen=True, eq=False)
-class BlockFit:
-    """The block emission's reading of the returned labelling (:mod:`.blocks`), on the standardised positions.
-
-    Attributes:
-        straight: (K,) bool, the states the profile (:meth:`_Run._block_profile`) makes straight.
-        shared: (K, 1 + p, d) and own: (N, K, 2, d) the coefficients' posterior means
-            (:func:`~lfd_torch.segmentation.blocks.block_posterior_means`).
-        tolerance: sigma_u of the curved states (rad).
-    """
-
-    straight: Tensor
-    shared: Tensor
-    own: Tensor
-    tolerance: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -358,8 +340,6 @@ class SamplerResult:
         chain: index of the chain the sample comes from.
         hyperparameters: final (mass, transition_concentration, stickiness) of that chain.
         acceptance: acceptance rates of the moves {"shared", "birth", "death"}.
-        block_fit: with the block emission, each state's component and the posterior means of the coefficients of
-            the returned labelling (:class:`BlockFit`); None without it.
     """
 
     states: Tensor
@@ -376,7 +356,6 @@ class SamplerResult:
     collapsed_log_prob: float = math.nan
     hyperparameters: dict[str, float] = field(default_factory=dict)
     acceptance: dict[str, float] = field(default_factory=dict)
-    block_fit: BlockFit | None = None
 
     @property
     def n_features(self) -> int:
@@ -1825,7 +1804,6 @@ class _Run:
             snap = best[c_best]
         assert snap is not None
         acceptance = {k: (v[0] / v[1] if v[1] else float("nan")) for k, v in self.accept.items()}
-        block_fit = None if self.blocks is None else self._block_fit(snap["states"], snap["features"].shape[-1])
         return SamplerResult(
             states=snap["states"],
             lengths=self.lengths.clone(),
@@ -1841,19 +1819,7 @@ class _Run:
             chain=c_best,
             hyperparameters={**snap["hyper"], **self._dwell_summary(snap["states"])},
             acceptance=acceptance,
-            block_fit=block_fit,
         )
-
-    def _block_fit(self, states: Tensor, K: int) -> BlockFit:
-        """The profiled components and the coefficients' posterior means of the labelling ``states`` (N, T)."""
-        s = states[None]
-        valid = self.valid.to(self.dtype)
-        onehot = (torch.nn.functional.one_hot(s, K).to(self.dtype) * valid.unsqueeze(-1)).reshape(1, -1, K)
-        age, w, _ = self._score_view(s)
-        kind = self._block_profile(s, age, w, onehot)[1][0]
-        shared, own = block_posterior_means(*self.blocks, self.valid, states, kind == 0,
-                                            **{**self._block_options(), "slope_scale": self._block_scales(kind)})
-        return BlockFit(straight=kind == 0, shared=shared, own=own, tolerance=self.cfg.block_tolerance)
 
     def _best_tolerance(self, snap: dict) -> float:
         """Set the tolerance of :data:`TOLERANCES` under which the labelling of ``snap`` has the highest collapsed

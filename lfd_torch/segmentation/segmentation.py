@@ -171,7 +171,6 @@ points up to noise; any position density that gives them to one step loses them 
 from __future__ import annotations
 
 import functools
-import os as _os
 import math
 import numbers
 import time
@@ -196,10 +195,10 @@ from lfd_torch.errors import (
     TooFewSamplesError,
 )
 from lfd_torch.gmm import GaussianBank, gaussian_log_density
-from lfd_torch.segmentation.blocks import BlockMeans, tridiagonal_whiten, block_increment_moments, block_means
+from lfd_torch.segmentation.blocks import BlockMeans, block_means
 from lfd_torch.segmentation.dwell import dwell_covariate
 from lfd_torch.segmentation.field import field_log_likelihood_additive, field_observations
-from lfd_torch.segmentation.sampler import BetaProcessHMMSampler, BlockFit, SamplerResult
+from lfd_torch.segmentation.sampler import BetaProcessHMMSampler, SamplerResult
 from lfd_torch.utils import FLOAT_DTYPES
 
 __all__ = [
@@ -888,46 +887,6 @@ def _refine_switch(ll: Tensor, a: int, b: int, lo: int, hi: int, stride: int,
     diff = (seg[:, a] - seg[:, b]) / stride  # evidence for a over b of every full-rate sample
     # score(t) = sum_{t' < t} diff(t') (+ const): samples before t with a, from t on with b
     score = torch.cat([diff.new_zeros(1), diff.cumsum(0)])  # t = lo .. hi
-    return _switch_posterior(score, lo, hi, log_prior)
-
-
-def _block_switch_scores(x: Tensor, length: Tensor, fit: BlockFit, own: Tensor, a: int, b: int, lo: int, hi: int,
-                         noise_var: float, spacing: float) -> Tensor:
-    """(hi - lo + 1,) log p(x[lo - 1 .. hi] | switch at tau) for tau = lo .. hi (up to a constant) under the block
-    emission at full rate (module docstring, item 3): every sample its own block, the states' coefficients at their
-    posterior means given the labelling (:class:`~.sampler.BlockFit`; ``own`` (K, 2, d) this sequence's).
-
-    Args:
-        x: (T, d) standardised positions; length: (T,) their standardised path length; noise_var: the position
-            noise variance per axis (standardised); spacing: the grid's mean spacing in standardised path length.
-    The increment from tau - 1 to tau crosses the switch and is free (N(0, h^2) per axis, h = ``spacing``, as
-    across a grid interval that holds a switch); those before it move under a, those after under b. The noises of consecutive
-    increments share a sample (covariance -noise_var), so each tau's residuals are whitened by the tridiagonal
-    recurrence of :mod:`.blocks`, all tau at once."""
-    idx = torch.arange(lo - 1, hi, device=x.device)  # the L increments (j, j + 1) of the window
-    L = idx.numel()
-    z = torch.cat([x, torch.ones_like(x[:, :1])], -1)
-    ds = (length[idx + 1] - length[idx]).clamp_min(0.0)
-    y = x[idx + 1] - x[idx]  # (L, d)
-    zmid = 0.5 * (z[idx + 1] + z[idx])
-    state = torch.tensor([a, b], device=x.device).view(2, 1).expand(2, L)
-    mean, extra = block_increment_moments(fit.shared, own, ds.expand(2, L), zmid.expand(2, L, -1), state,
-                                          fit.straight, tolerance=fit.tolerance, spacing=spacing)  # (2, L, .)
-    r = torch.arange(L, device=x.device).unsqueeze(-1)  # increment r of the window; column q: tau = lo + q
-    q = torch.arange(L, device=x.device).unsqueeze(0)
-    before, after = (r < q).unsqueeze(-1), (r > q).unsqueeze(-1)
-    res = y.unsqueeze(1) - torch.where(before, mean[0].unsqueeze(1), torch.where(after, mean[1].unsqueeze(1), 0.0))
-    diag = 2.0 * noise_var + torch.where(r < q, extra[0].unsqueeze(1),
-                                         torch.where(r > q, extra[1].unsqueeze(1), spacing**2))
-    off = torch.full((L - 1, L), -noise_var, dtype=x.dtype, device=x.device)
-    res = res.contiguous()
-    logdet = tridiagonal_whiten(diag, off, res)  # (L,) per axis
-    return -0.5 * res.square().sum((0, 2)) - 0.5 * x.shape[1] * logdet
-
-
-def _switch_posterior(score: Tensor, lo: int, hi: int, log_prior: Tensor | None = None) -> tuple[int, Tensor]:
-    """The median and the label doubts (:func:`_refine_switch`) of the change-point posterior of log weights
-    ``score`` (hi - lo + 1,) over tau = lo .. hi, plus ``log_prior`` (T + 1,) when given."""
     if log_prior is not None:
         score = score + log_prior[lo : hi + 1]
     post = torch.softmax(score, 0)
@@ -935,7 +894,7 @@ def _switch_posterior(score: Tensor, lo: int, hi: int, log_prior: Tensor | None 
     half = post.new_tensor([0.5])
     cut = int(torch.searchsorted(cdf, half).clamp_max(hi - lo))
     in_b = cdf[:-1]  # P(sample lo + j belongs to b) = P(tau <= lo + j)
-    j = torch.arange(hi - lo, device=score.device)
+    j = torch.arange(hi - lo, device=ll.device)
     doubt = torch.where(j < cut, in_b, 1.0 - in_b).clamp(0.0, 1.0)
     return lo + cut, doubt
 
@@ -1331,12 +1290,6 @@ def segment(
                                  radius=result.radius)
         ll = field_log_likelihood_additive(obs.z, obs.u, obs.w, result.field.unsqueeze(0), result.noise.unsqueeze(0),
                                            robust_dof, direction_noise=direction_noise)[0]
-        fit = result.block_fit if _os.environ.get("LFD_REFINE", "blocks") == "blocks" else None
-        if fit is not None:
-            x_std = (xf - result.centre) / result.radius
-            len_std = grid_levels[i][0] / result.radius
-            spacing = float(len_std[-1]) / n_c
-            noise_std = (sigma_x / float(result.radius)) ** 2
         cuts = [0]
         junc: list[tuple[int, Tensor]] = []
         coarse = grid[i][starts].tolist()  # full-rate sample of every run's first grid point
@@ -1349,12 +1302,7 @@ def segment(
                 cuts.append(min(max(coarse[r], cuts[-1] + 1), Ti - 1))
                 junc.append((cuts[-1], xf.new_zeros(0)))
                 continue
-            if fit is None:
-                cut, doubt = _refine_switch(ll, int(values[r - 1]), int(values[r]), lo, hi, k, switch_prior)
-            else:
-                score = _block_switch_scores(x_std, len_std, fit, fit.own[i], int(values[r - 1]), int(values[r]),
-                                             lo, hi, noise_std, spacing)
-                cut, doubt = _switch_posterior(score, lo, hi, switch_prior)
+            cut, doubt = _refine_switch(ll, int(values[r - 1]), int(values[r]), lo, hi, k, switch_prior)
             cuts.append(cut)
             junc.append((lo, doubt))
         cuts.append(Ti)
