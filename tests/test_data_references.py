@@ -290,7 +290,8 @@ def test_pipeline_equals_its_steps_called_by_hand() -> None:
     base = Preprocess(smoothing="none")(demos)
     assert not torch.equal(Preprocess(smoothing="none", velocity_scheme="forward")(demos).velocities, base.velocities)
     sg3 = Preprocess(window=7, polyorder=3)(demos).positions
-    assert not torch.equal(Preprocess(window=7, polyorder=2)(demos).positions, sg3)
+    # (orders 2k and 2k + 1 give the same centred Savitzky-Golay weights: compare 3 with 4, not with 2)
+    assert not torch.allclose(Preprocess(window=7, polyorder=4)(demos).positions, sg3, rtol=0, atol=1e-9)
     assert not torch.equal(Preprocess(smoothing="moving_average", window=7)(demos).positions, sg3)
     assert Preprocess(smoothing="none", screen_threshold=0.05)(demos).dim == 2
 

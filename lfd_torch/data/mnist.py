@@ -25,7 +25,9 @@ Stroke extraction (:func:`extract_stroke`), per H x W uint8 image:
    trails of equal length (the two ways round a loop) go to the smoother one, then to the one running top to
    bottom. A skeleton without endpoints (a closed 0 or 8) starts at its top-most pixel (left-most among ties) and
    is traversed counter-clockwise there (first move to the left, as a 0 is written); the closed trail is then cut
-   open by dropping its last ``loop_gap`` fraction, so the pen's end (the attractor) differs from its start.
+   open by dropping its last ``loop_gap`` fraction, so the pen's end (the attractor) differs from its start. A
+   trail that does not come back to its start (a theta whose bar ends it) keeps its start at the top pixel and
+   the direction of the trail search.
 4. Orientation: the attractor is the last point. An open trail starts at its higher end (natural writing starts
    at the top); ends within ``level_tol`` px of the same height start at the left-most one.
 5. Gaussian smoothing along the path (``smooth`` px), then resampling.
@@ -626,7 +628,9 @@ def extract_stroke(
         dense = np.concatenate([body, body[:1]]) if is_loop else body
     if closed:
         lead = dense[min(len(dense) - 1, int(math.ceil(2.0 / step)))] - dense[0]
-        if lead[0] > 0:  # first move to the right: traverse the other way (counter-clockwise at the top)
+        # first move to the right: traverse the other way (counter-clockwise at the top); only a trail that comes
+        # back to its start can be reversed without moving the start away from the top
+        if is_loop and lead[0] > 0:
             dense = dense[::-1].copy()
         if is_loop and loop_gap > 0:
             s = _arc(dense)
