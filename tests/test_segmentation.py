@@ -203,9 +203,11 @@ def test_data_blind_labeller_fails_the_step_property(monkeypatch, labeller):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_sampler_with_data_blind_likelihood_fails_the_step_property(monkeypatch, seed):
-    """Property checked: :func:`step_accuracy`. With an emission log-likelihood that ignores the data (zeros, in the
-    sampler and in the switch refinement) the state sequences are draws from the prior; they must fail the property
-    that the real sampler passes on the same data."""
+    """Property checked: :func:`step_accuracy`. With an emission log-likelihood that ignores the data (the direction
+    fields' zeros, and the block emission, the default, scored on block means, path lengths and variances that are
+    the same for every data set; in the sampler, in its scores of the switches' grid positions and in the switch
+    refinement) the state sequences are draws from the prior; they must fail the property that the real sampler
+    passes on the same data."""
     syn = synthetic(*MUTATION_CASE)
     real_ok, real_report = step_accuracy(segmented(*MUTATION_CASE), syn.switch_times, syn.demos.lengths)
     assert real_ok, real_report
@@ -222,6 +224,14 @@ def test_sampler_with_data_blind_likelihood_fails_the_step_property(monkeypatch,
         return torch.zeros_like(original_additive(*args, **kwargs))
 
     monkeypatch.setattr(segmentation_module, "field_log_likelihood_additive", blind_additive)
+    original_blocks = sampler_module.block_sequence_terms
+
+    def blind_blocks(xbar, sbar, var, zmid, *args, **kwargs):
+        steps = torch.arange(sbar.shape[-1], dtype=sbar.dtype).expand_as(sbar)
+        return original_blocks(torch.zeros_like(xbar), steps, torch.ones_like(var), torch.zeros_like(zmid), *args,
+                               **kwargs)
+
+    monkeypatch.setattr(sampler_module, "block_sequence_terms", blind_blocks)
     seg = segment(syn.demos, generator=torch.Generator().manual_seed(seed))
     ok, report = step_accuracy(seg, syn.switch_times, syn.demos.lengths)
     assert not ok, f"a sampler blind to the data passed the step property: {report}"
@@ -1501,6 +1511,45 @@ def test_straight_states_cut_single_demonstrations_of_straight_legs(monkeypatch)
     assert all(ok for ok, *_ in with_straight), with_straight
     affine_only = [found_all(seed, 0.0) for seed in (0, 5)]
     assert not any(ok for ok, *_ in affine_only), affine_only
+
+
+def test_refine_switch_on_grid_mixes_the_grid_posterior_with_the_change_point_posterior_within_each_interval():
+    """_refine_switch_on_grid against a plain loop: the grid position j of the second run (j0 .. j0 + 3) has
+    probability softmax(grid scores), the switch tau lies in (grid[j - 1], grid[j]] with probability within that
+    interval proportional to _refine_switch's exp(sum_{lo <= t < tau} (ll_a - ll_b) / stride + log_prior(tau)); the
+    switch is the median of the mixture, a sample's doubt the probability that it lies on the other side. The
+    direction evidence alone (a strong pull to tau = 30) cannot move the switch out of the intervals the grid scores
+    favour; with ``first`` clipping the first interval the others keep their grid probabilities."""
+    from lfd_torch.segmentation.segmentation import _refine_switch_on_grid
+
+    g = torch.Generator().manual_seed(5)
+    T, K, a, b, stride = 48, 2, 0, 1, 3
+    grid = torch.arange(1, T, 4)  # grid points 1, 5, 9, ...
+    ll = 0.3 * torch.randn(T, K, generator=g, dtype=F64)
+    ll[:30, a] += 1.0  # the direction likelihood alone puts the switch at 30
+    ll[30:, b] += 1.0
+    j0, grid_scores = 4, torch.tensor([0.5, 2.0, 1.0, -3.0], dtype=F64)  # intervals (13, 17], (17, 21], ..
+    for first, log_prior in ((0, None), (15, None), (0, 0.4 * torch.randn(T + 1, generator=g, dtype=F64))):
+        lo, switch, doubt = _refine_switch_on_grid(ll, a, b, grid, j0, grid_scores, first, T - 1, stride, log_prior)
+        taus, weights = [], []
+        kept = [w for w in range(4) if int(grid[j0 + w]) >= first]
+        p_grid = np.exp([float(grid_scores[w]) for w in kept])
+        p_grid /= p_grid.sum()
+        for w, pj in zip(kept, p_grid):
+            ts = [t for t in range(int(grid[j0 + w - 1]) + 1, int(grid[j0 + w]) + 1) if t >= first]
+            sc = [sum(float(ll[t, a] - ll[t, b]) for t in range(ts[0] if not taus else taus[0], tau)) / stride
+                  + (0.0 if log_prior is None else float(log_prior[tau])) for tau in ts]
+            top = max(sc)
+            e = [math.exp(v - top) for v in sc]
+            taus += ts
+            weights += [pj * v / sum(e) for v in e]
+        assert lo == taus[0] and taus == list(range(taus[0], taus[-1] + 1))
+        cdf = list(itertools.accumulate(weights))
+        want = taus[0] + next(j for j, c in enumerate(cdf) if c >= 0.5)
+        assert switch == want, (first, switch, want)
+        assert 13 < switch <= 29  # never at the direction evidence's 30
+        want_doubt = [cdf[t - lo] if t < want else 1.0 - cdf[t - lo] for t in range(lo, taus[-1])]
+        np.testing.assert_allclose(doubt.numpy(), want_doubt, rtol=1e-9, atol=1e-12)
 
 
 def test_refine_switch_is_the_median_of_a_written_out_change_point_posterior():

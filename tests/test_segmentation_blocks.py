@@ -11,6 +11,7 @@ from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
 from lfd_torch.segmentation import segment
 from lfd_torch.segmentation.blocks import BlockMeans, block_log_evidence, block_means
 from lfd_torch.segmentation.sampler import BetaProcessHMMSampler
+from lfd_torch.segmentation.states import used_states
 from conftest import capture_runs
 
 
@@ -274,6 +275,59 @@ def test_map_search_block_deltas_are_the_block_evidence_of_each_candidate(monkey
         matters.append(bool((born & (switched > held)).any()))
         assert born.any() and torch.allclose(fast, ref, rtol=0, atol=1e-7), float((fast - ref).abs().max())
     assert any(matters) or slope_scale_mix > 0  # on the straight legs some birth is better switched
+
+
+def test_switch_scores_are_the_collapsed_scores_of_every_admissible_switch_position(monkeypatch):
+    """SamplerResult.switch_scores (the model's posterior over each switch's grid position, which the full-rate
+    refinement uses): for every switch of every demonstration, one score per grid point j at which its second run may
+    start with both runs at least the minimum duration D long (a plain loop builds each labelling), equal to the
+    collapsed score of that labelling with the block emission's components held at those of the returned one
+    (block_log_evidence plus the other terms of the score); at the returned position it is the returned score."""
+    import lfd_torch.segmentation.sampler as sampler_module
+    from lfd_torch.segmentation.synthetic import multi_step_demos
+
+    runs = capture_runs(monkeypatch)
+    syn = multi_step_demos(torch.Generator().manual_seed(1), n_demos=2, n_steps=3, dim=2, profile="constant")
+    seg = segment(syn.demos, generator=torch.Generator().manual_seed(0), n_iterations=10)
+    run, res = runs[-1], seg.sampler
+    s, F = res.states, res.features
+    N, T = s.shape
+    K, D = F.shape[-1], run.D
+    hyper = [torch.tensor([res.hyperparameters[k]], dtype=run.dtype)
+             for k in ("transition_concentration", "stickiness", "feature_mass")]
+    onehot = torch.nn.functional.one_hot(s, K).to(run.dtype) * run.valid.unsqueeze(-1)
+    age, w, _ = run._score_view(s[None])
+    kind = run._block_profile(s[None], age, w.expand(1, -1), onehot.reshape(1, N * T, K))[1]
+    scales = run._block_scales(kind)
+    log_prior = run._component_log_prior(kind, torch.ones_like(kind, dtype=torch.bool))
+
+    def full(lab):
+        phases = sampler_module.duration_phases(lab, D)
+        others = sum(run._collapsed_score_parts(lab, F[None], phases, *hyper, block=False).values())
+        ev = block_log_evidence(*run.blocks, run.valid, lab, kind == 0, **{**run._block_options(),
+                                                                              "slope_scale": scales})
+        used = used_states(lab, run.valid, K).any(1)
+        return float(others[0] + ev[0] + (log_prior * used).sum())
+
+    assert full(s[None]) == pytest.approx(res.collapsed_log_prob, abs=1e-6)
+    n_switches = 0
+    for i in range(N):
+        n = int(res.lengths[i])
+        row = s[i, :n].tolist()
+        starts = [0] + [t for t in range(1, n) if row[t] != row[t - 1]]
+        bounds = list(zip(starts, starts[1:] + [n]))
+        assert len(res.switch_scores[i]) == len(bounds) - 1
+        for r, (j0, scores) in enumerate(res.switch_scores[i]):
+            (lo, cur), (_, hi) = bounds[r], bounds[r + 1]
+            admissible = [j for j in range(lo + 1, hi) if j - lo >= D and hi - j >= D]
+            assert list(range(j0, j0 + scores.numel())) == admissible and cur in admissible
+            for j, sc in zip(admissible, scores.tolist()):
+                lab = s.clone()
+                lab[i, lo:hi] = torch.where(torch.arange(lo, hi) < j, row[lo], row[hi - 1])
+                assert sc == pytest.approx(full(lab[None]), abs=1e-6), (i, r, j)
+            assert float(scores[cur - j0]) == pytest.approx(res.collapsed_log_prob, abs=1e-6)
+            n_switches += 1
+    assert n_switches >= 4
 
 
 def test_component_profile_is_a_local_maximum_where_three_states_start_wrong(monkeypatch):

@@ -340,6 +340,10 @@ class SamplerResult:
         chain: index of the chain the sample comes from.
         hyperparameters: final (mass, transition_concentration, stickiness) of that chain.
         acceptance: acceptance rates of the moves {"shared", "birth", "death"}.
+        switch_scores: with the block emission, per sequence and switch of ``states`` (in time order), (j0, scores):
+            the collapsed score (:meth:`_Run._switch_scores`) of the labelling with that switch's second run
+            starting at grid point j0 + w instead, w = 0 .. W - 1 (W,), every run at least the minimum duration
+            long; None without the block emission.
     """
 
     states: Tensor
@@ -356,6 +360,7 @@ class SamplerResult:
     collapsed_log_prob: float = math.nan
     hyperparameters: dict[str, float] = field(default_factory=dict)
     acceptance: dict[str, float] = field(default_factory=dict)
+    switch_scores: list[list[tuple[int, Tensor]]] | None = None
 
     @property
     def n_features(self) -> int:
@@ -1804,6 +1809,7 @@ class _Run:
             snap = best[c_best]
         assert snap is not None
         acceptance = {k: (v[0] / v[1] if v[1] else float("nan")) for k, v in self.accept.items()}
+        switch_scores = None if self.blocks is None else self._switch_scores(snap)
         return SamplerResult(
             states=snap["states"],
             lengths=self.lengths.clone(),
@@ -1819,7 +1825,47 @@ class _Run:
             chain=c_best,
             hyperparameters={**snap["hyper"], **self._dwell_summary(snap["states"])},
             acceptance=acceptance,
+            switch_scores=switch_scores,
         )
+
+    def _switch_scores(self, snap: dict) -> list[list[tuple[int, Tensor]]]:
+        """:attr:`SamplerResult.switch_scores` of the labelling of ``snap``: every admissible position of each
+        switch, the other switches where they are, scored as the shift move scores its candidates
+        (:meth:`_shift_scores`: the collapsed score's change, the block emission's components held)."""
+        s, F = snap["states"], snap["features"]
+        hyper = [torch.tensor([snap["hyper"][k]], dtype=self.dtype, device=self.device)
+                 for k in ("transition_concentration", "stickiness", "feature_mass")]
+        score = self._collapsed_score(s[None], F[None], duration_phases(s[None], self.D), *hyper)[0]
+        D, T = self.D, self.T
+        spans = []  # (sequence, first sample of run r, end of run r + 1, a, b, first j0, last j)
+        runs = _runs(s, self.lengths)
+        for i, run in enumerate(runs):
+            for (lo, c, a), (_, hi, b) in zip(run[:-1], run[1:]):
+                spans.append((i, lo, hi, a, b, min(lo + D, c), max(hi - D, c)))
+        out: list[list[tuple[int, Tensor]]] = [[] for _ in runs]
+        if not spans:
+            return out
+        sp = torch.tensor(spans, dtype=torch.long, device=self.device)
+        seq, lo, hi, a, b, j0, j1 = sp.unbind(1)
+        width = j1 - j0 + 1
+        owner = torch.repeat_interleave(torch.arange(sp.shape[0], device=self.device), width)
+        new = j0[owner] + torch.arange(owner.numel(), device=self.device) - torch.repeat_interleave(
+            width.cumsum(0) - width, width)
+        tt = torch.arange(T, device=self.device)
+        rows = s[seq[owner]]
+        inside = (tt >= lo[owner, None]) & (tt < hi[owner, None])
+        rows = torch.where(inside, torch.where(tt < new[:, None], a[owner, None], b[owner, None]), rows)
+        P = owner.numel()
+        cand = s.unsqueeze(0).expand(P, -1, -1).clone()
+        cand[torch.arange(P, device=self.device), seq[owner]] = rows
+        cand_f = F.unsqueeze(0).expand(P, -1, -1)
+        touched = torch.stack([a[owner], b[owner], torch.full_like(a[owner], -1)], 1)
+        scores = torch.cat([self._shift_scores(s, F, *part, score, hyper)
+                            for part in zip(*(x.split(_SHIFT_CHUNK) for x in (cand, cand_f, seq[owner], touched)))])
+        for w, (i, start, n) in enumerate(zip(seq.tolist(), j0.tolist(), width.tolist())):
+            first = int((width[:w]).sum())
+            out[i].append((start, scores[first : first + n].cpu()))
+        return out
 
     def _best_tolerance(self, snap: dict) -> float:
         """Set the tolerance of :data:`TOLERANCES` under which the labelling of ``snap`` has the highest collapsed

@@ -51,11 +51,8 @@ after the sampler creates, removes, merges or moves a step across a state switch
        each velocity's least-squares line at its own sample, whose noise is (2 k + 1)^(1/2) times smaller (a strongly
        curved field turns position noise into direction noise): every switch on 85.4 % of the 280 synthetic cases
        against 86.4 %, the constant-speed scoop unchanged (0 / 1 of 10); the velocity noise dominates there.
-       Each switch is then placed at full rate by the direction emission's likelihood (the sampler's own with
-       ``block_emission=False``; under the block emission, whose evidence is one of block means with no full-rate
-       form, it is another likelihood than the one that chose the labelling, and it can move a switch by more than
-       a grid interval: ``experiments/segmentation_studies.md``, "The full-rate switch refinement confined near the
-       sampler's switch"): between the two states that the model put on either side, the change point posterior
+       Each switch is then placed at full rate. With the direction emission (``block_emission=False``) by the
+       sampler's own likelihood: between the two states that the model put on either side, the change point posterior
        p(t) ∝ exp(sum_{t' < t} l_a(t') + sum_{t' >= t} l_b(t')) / k) over t between the midpoints of the
        neighbouring runs, l the field log-likelihood of the full-rate samples (each weighted 1 / k because k
        full-rate samples carry the information of one grid point) under the fields
@@ -73,6 +70,18 @@ after the sampler creates, removes, merges or moves a step across a state switch
        accident of where the grid points fall, and weighting every t by the interval that contains it put the
        switch in the middle of that interval, up to half a grid spacing (several % of a dwelling leg) from the
        rest when the rest sits near a grid point.
+       Under the block emission (the default) the labelling was chosen by the evidence of block means, which has no
+       full-rate form, and the direction fields are another likelihood: alone they moved switches by several grid
+       intervals from where the block evidence put them (constant-speed scoop, one demonstration, case 0: the first
+       switch at sample 215, 188 as below, the truth 193). So the grid interval is the model's and only the place
+       inside it is the direction likelihood's: P(tau) = P(j) p(tau | j), P(j) ∝ exp(collapsed score of the labelling
+       whose second run starts at grid point j, every other switch as returned) over the positions that keep both
+       runs at least D long (:attr:`~.sampler.SamplerResult.switch_scores`, the block components held), and
+       p(tau | j) the posterior above restricted to the samples of interval j, (grid[j - 1], grid[j]]
+       (:func:`_refine_switch_on_grid`). A rest lies inside one interval (the path-length grid gives it no point),
+       so a dwelling corner is placed as before. A full-rate form of the block evidence itself was tried and lost
+       the dwelling corners (``experiments/segmentation_studies.md``, "The full-rate switch refinement under the
+       block emission's own model").
 Known limit (measured, not fixed): a step is what ONE affine direction field describes, so a narrow hairpin
 traversed at speed and a reversal at a near-rest are switches to this model whatever a task's semantics say.
 On the Baxter scooping demonstration (``lfd_torch.robot.demonstration``, one demonstration, Preprocess defaults)
@@ -883,18 +892,64 @@ def _refine_switch(ll: Tensor, a: int, b: int, lo: int, hi: int, stride: int,
         the switch (first sample of b) and the posterior probability that sample t, lo <= t < hi, is on the other
         side of it than its label says: P(tau <= t) before the switch, P(tau > t) from it on ((hi - lo,)).
     """
+    return _switch_posterior(_change_point_scores(ll, a, b, lo, hi, stride, log_prior), lo, hi)
+
+
+def _change_point_scores(ll: Tensor, a: int, b: int, lo: int, hi: int, stride: int,
+                   log_prior: Tensor | None = None) -> Tensor:
+    """(hi - lo + 1,) log weight of the switch times tau = lo .. hi of :func:`_refine_switch`."""
     seg = ll[lo:hi]  # (L, K)
     diff = (seg[:, a] - seg[:, b]) / stride  # evidence for a over b of every full-rate sample
     # score(t) = sum_{t' < t} diff(t') (+ const): samples before t with a, from t on with b
     score = torch.cat([diff.new_zeros(1), diff.cumsum(0)])  # t = lo .. hi
     if log_prior is not None:
         score = score + log_prior[lo : hi + 1]
+    return score
+
+
+def _refine_switch_on_grid(ll: Tensor, a: int, b: int, grid: Tensor, j0: int, grid_scores: Tensor, first: int,
+                           last: int, stride: int, log_prior: Tensor | None = None) -> tuple[int, int, Tensor]:
+    """Median of the change-point posterior between states a | b whose grid interval is the model's (module
+    docstring, item 3): P(tau) = P(j) p(tau | j), P(j) ∝ exp(``grid_scores``[j - j0]) the collapsed score of the
+    labelling whose second run starts at grid point j, p(tau | j) the posterior of :func:`_refine_switch` restricted
+    to tau in (grid[j - 1], grid[j]]; tau clipped to [first, last].
+
+    Returns:
+        lo, the window's first sample, and the switch and doubts of :func:`_refine_switch` over [lo, hi].
+    """
+    lo, hi, w = _grid_switch_window(grid, j0, grid_scores.numel(), first, last)
+    score = _change_point_scores(ll, a, b, lo, hi, stride, log_prior)
+    n = grid_scores.numel()
+    top = score.new_full((n,), -math.inf).scatter_reduce(0, w, score, "amax")
+    within = score - top[w]
+    log_norm = score.new_zeros(n).index_add_(0, w, within.exp()).log()  # -inf for an interval clipped away
+    grid_scores = grid_scores.to(score)
+    present = torch.isfinite(log_norm)
+    log_grid = grid_scores - torch.logsumexp(grid_scores[present], 0)
+    return (lo, *_switch_posterior(within - log_norm[w] + log_grid[w], lo, hi))
+
+
+def _grid_switch_window(grid: Tensor, j0: int, n: int, first: int, last: int) -> tuple[int, int, Tensor]:
+    """The window [lo, hi] of the switch times of grid positions j0 .. j0 + n - 1 (the second run starting at grid
+    point j puts tau in (grid[j - 1], grid[j]]), clipped to [first, last], and each tau's position index (w in
+    0 .. n - 1) ((hi - lo + 1,) long)."""
+    lo = max(int(grid[j0 - 1]) + 1, first)
+    hi = max(min(int(grid[j0 + n - 1]), last), lo)
+    tau = torch.arange(lo, hi + 1, device=grid.device)
+    # w with grid[j0 + w - 1] < tau <= grid[j0 + w]
+    w = torch.searchsorted(grid[j0 : j0 + n].contiguous(), tau).clamp_max(n - 1)
+    return lo, hi, w
+
+
+def _switch_posterior(score: Tensor, lo: int, hi: int) -> tuple[int, Tensor]:
+    """Median and label doubts (:func:`_refine_switch`) of the change-point posterior of log weights ``score``
+    (hi - lo + 1,) over tau = lo .. hi."""
     post = torch.softmax(score, 0)
     cdf = post.cumsum(0)  # cdf[j] = P(tau <= lo + j)
     half = post.new_tensor([0.5])
     cut = int(torch.searchsorted(cdf, half).clamp_max(hi - lo))
     in_b = cdf[:-1]  # P(sample lo + j belongs to b) = P(tau <= lo + j)
-    j = torch.arange(hi - lo, device=ll.device)
+    j = torch.arange(hi - lo, device=score.device)
     doubt = torch.where(j < cut, in_b, 1.0 - in_b).clamp(0.0, 1.0)
     return lo + cut, doubt
 
@@ -1302,7 +1357,13 @@ def segment(
                 cuts.append(min(max(coarse[r], cuts[-1] + 1), Ti - 1))
                 junc.append((cuts[-1], xf.new_zeros(0)))
                 continue
-            cut, doubt = _refine_switch(ll, int(values[r - 1]), int(values[r]), lo, hi, k, switch_prior)
+            if result.switch_scores is not None:
+                # the model's posterior over the grid interval, the direction likelihood within each interval
+                j0, grid_score = result.switch_scores[i][r - 1]
+                lo, cut, doubt = _refine_switch_on_grid(ll, int(values[r - 1]), int(values[r]), grid[i], j0,
+                                                        grid_score, cuts[-1] + 1, Ti - 1, k, switch_prior)
+            else:
+                cut, doubt = _refine_switch(ll, int(values[r - 1]), int(values[r]), lo, hi, k, switch_prior)
             cuts.append(cut)
             junc.append((lo, doubt))
         cuts.append(Ti)
