@@ -1862,8 +1862,7 @@ class _Run:
         touched = torch.stack([a[owner], b[owner], torch.full_like(a[owner], -1)], 1)
         scores = torch.cat([self._shift_scores(s, F, *part, score, hyper)
                             for part in zip(*(x.split(_SHIFT_CHUNK) for x in (cand, cand_f, seq[owner], touched)))])
-        for w, (i, start, n) in enumerate(zip(seq.tolist(), j0.tolist(), width.tolist())):
-            first = int((width[:w]).sum())
+        for i, start, first, n in zip(seq.tolist(), j0.tolist(), (width.cumsum(0) - width).tolist(), width.tolist()):
             out[i].append((start, scores[first : first + n].cpu()))
         return out
 

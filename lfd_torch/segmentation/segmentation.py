@@ -896,7 +896,7 @@ def _refine_switch(ll: Tensor, a: int, b: int, lo: int, hi: int, stride: int,
 
 
 def _change_point_scores(ll: Tensor, a: int, b: int, lo: int, hi: int, stride: int,
-                   log_prior: Tensor | None = None) -> Tensor:
+                         log_prior: Tensor | None = None) -> Tensor:
     """(hi - lo + 1,) log weight of the switch times tau = lo .. hi of :func:`_refine_switch`."""
     seg = ll[lo:hi]  # (L, K)
     diff = (seg[:, a] - seg[:, b]) / stride  # evidence for a over b of every full-rate sample
