@@ -1836,7 +1836,7 @@ class _Run:
         hyper = [torch.tensor([snap["hyper"][k]], dtype=self.dtype, device=self.device)
                  for k in ("transition_concentration", "stickiness", "feature_mass")]
         score = self._collapsed_score(s[None], F[None], duration_phases(s[None], self.D), *hyper)[0]
-        D, T = self.D, self.T
+        D = self.D
         spans = []  # (sequence, first sample of run r, end of run r + 1, a, b, first j0, last j)
         runs = _runs(s, self.lengths)
         for i, run in enumerate(runs):
@@ -1848,13 +1848,7 @@ class _Run:
         sp = torch.tensor(spans, dtype=torch.long, device=self.device)
         seq, lo, hi, a, b, j0, j1 = sp.unbind(1)
         width = j1 - j0 + 1
-        owner = torch.repeat_interleave(torch.arange(sp.shape[0], device=self.device), width)
-        new = j0[owner] + torch.arange(owner.numel(), device=self.device) - torch.repeat_interleave(
-            width.cumsum(0) - width, width)
-        tt = torch.arange(T, device=self.device)
-        rows = s[seq[owner]]
-        inside = (tt >= lo[owner, None]) & (tt < hi[owner, None])
-        rows = torch.where(inside, torch.where(tt < new[:, None], a[owner, None], b[owner, None]), rows)
+        owner, rows = self._moved_switches(s, seq, lo, hi, a, b, j0, j1)
         P = owner.numel()
         cand = s.unsqueeze(0).expand(P, -1, -1).clone()
         cand[torch.arange(P, device=self.device), seq[owner]] = rows
@@ -2289,16 +2283,8 @@ class _Run:
             return None
         sp = torch.tensor(spans, dtype=torch.long, device=self.device)  # (W, 8)
         seq, lo, hi, a, b, c0, c1, m = sp.unbind(1)
-        width = (c1 - c0 + 1).clamp_min(0)
-        owner = torch.repeat_interleave(torch.arange(sp.shape[0], device=self.device), width)  # (P,)
-        offset = torch.arange(owner.numel(), device=self.device) - torch.repeat_interleave(width.cumsum(0) - width,
-                                                                                              width)
-        new = c0[owner] + offset  # first grid point of b in the region
+        owner, rows = self._moved_switches(s, seq, lo, hi, a, b, c0, c1)
         seq, lo, hi, a, b, m = seq[owner], lo[owner], hi[owner], a[owner], b[owner], m[owner]
-        tt = torch.arange(self.T, device=self.device).unsqueeze(0)
-        rows = s[seq]
-        inside = (tt >= lo.unsqueeze(1)) & (tt < hi.unsqueeze(1))
-        rows = torch.where(inside, torch.where(tt < new.unsqueeze(1), a.unsqueeze(1), b.unsqueeze(1)), rows)
         rows = torch.where(self.valid[seq], rows, torch.gather(rows, 1, (self.lengths[seq] - 1).unsqueeze(1)))
         changed = (rows != s[seq]).any(1)  # drop candidates equal to the current labelling
         seq, rows = seq[changed], rows[changed]
@@ -2337,6 +2323,20 @@ class _Run:
                 for b in sorted({x for x, b in follows if b == a and x != a and x != prv}) + [new]:
                     spans.append((i, lo, hi, b, a, lo + D, hi - D, -1))
         return spans
+
+    def _moved_switches(self, s: Tensor, seq: Tensor, lo: Tensor, hi: Tensor, a: Tensor, b: Tensor, c0: Tensor,
+                        c1: Tensor) -> tuple[Tensor, Tensor]:
+        """For each region (W,) of sequence ``seq``, grid points [lo, hi), every relabelling a before and b from a
+        grid point c in [c0, c1]: the (P,) region of each and its (P, T) relabelled sequence."""
+        width = (c1 - c0 + 1).clamp_min(0)
+        owner = torch.repeat_interleave(torch.arange(seq.numel(), device=self.device), width)  # (P,)
+        offset = torch.arange(owner.numel(), device=self.device) - torch.repeat_interleave(width.cumsum(0) - width,
+                                                                                              width)
+        new = (c0[owner] + offset).unsqueeze(1)  # first grid point of b in the region
+        tt = torch.arange(self.T, device=self.device).unsqueeze(0)
+        inside = (tt >= lo[owner].unsqueeze(1)) & (tt < hi[owner].unsqueeze(1))
+        rows = torch.where(inside, torch.where(tt < new, a[owner].unsqueeze(1), b[owner].unsqueeze(1)), s[seq[owner]])
+        return owner, rows
 
     def _shift_scores(self, s: Tensor, F: Tensor, cand_s: Tensor, cand_f: Tensor, seq: Tensor, touched: Tensor,
                       score: Tensor, hyper: list[Tensor], switched: bool = False) -> Tensor:
