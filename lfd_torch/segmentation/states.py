@@ -77,14 +77,40 @@ def _forward(
         if keep:
             out.append(alpha)
     log_norm = torch.log(torch.cat(norms, 1)).view(B, T)
-    # padding steps have e = 1 and row-stochastic transitions, so they leave the total mass (and log_norm) unchanged
-    log_lik = (log_norm.sum(1) + m.sum(1)).masked_fill_(mass.view(B) == 0, -math.inf)
+    # padding steps have e = 1 and row-stochastic transitions, so they leave the total mass (and log_norm) unchanged;
+    # the last step's mass may have been clamped with no later step to carry the rest: mass / norm (exactly 1 unless
+    # it was, 0 when no state explains a sample) adds it
+    log_lik = log_norm.sum(1) + m.sum(1) + torch.log(mass / norm).view(B)
+    dead = mass.view(B) == 0
+    if bool(dead.any()):
+        # a mass of exactly 0 is also what the scaled emissions give when every state that can be reached is more
+        # than ~745 nats behind the best one at some sample (exp underflows): those rows again in log space
+        rows = torch.nonzero(dead).view(-1)
+        log_filtered, log_lik_rows = _log_forward(log_emission[rows], initial[rows], transition[rows], valid[rows])
+        log_lik = log_lik.index_copy(0, rows, log_lik_rows)
     if not keep:
         return None, log_lik
     filtered = torch.cat(out, 1)
+    if bool(dead.any()):
+        redone = torch.exp(log_filtered - log_filtered.logsumexp(-1, keepdim=True)).nan_to_num_(0.0)
+        filtered = filtered.index_copy(0, rows, redone)
     last = (lengths - 1).clamp_min(0)
     index = torch.minimum(torch.arange(T, device=e.device).unsqueeze(0), last.unsqueeze(1))
     return filtered.gather(1, index.unsqueeze(-1).expand(B, T, K)), log_lik
+
+
+def _log_forward(log_emission: Tensor, initial: Tensor, transition: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
+    """The forward recursion in log space, log alpha_t = logsumexp_j(log alpha_{t-1, j} + log P_jk) + l_t (padding
+    steps neutral): (B, T, K) log alpha and (B,) log likelihoods. A logsumexp over K^2 terms per step, for the rows
+    the normalised recursion cannot hold (:func:`_forward`)."""
+    B, T, K = log_emission.shape
+    log_p = torch.log(transition).unsqueeze(0)  # (1, B, K, K)
+    le = log_emission.masked_fill(~valid.unsqueeze(-1), 0.0)
+    steps = [torch.log(initial) + le[:, 0]]
+    for t in range(1, T):
+        steps.append(torch.logsumexp(steps[-1].unsqueeze(-1) + log_p[0], 1) + le[:, t])
+    log_alpha = torch.stack(steps, 1)
+    return log_alpha, torch.logsumexp(log_alpha[:, -1], -1)
 
 
 def forward_log_likelihood(log_emission: Tensor, initial: Tensor, transition: Tensor, lengths: Tensor) -> Tensor:
