@@ -509,45 +509,29 @@ def test_sample_ibp_class_frequencies_match_the_buffet_probabilities():
         assert abs(counts.get(key, 0) / n - p) <= 5.0 * math.sqrt(p * (1.0 - p) / n) + 5.0 / n, (key, p)
 
 
-def test_forward_exact_when_the_last_sample_has_a_tiny_normal_mass():
-    """A switch of probability 1e-305 (a normal number, above the clamp of the recursion) forced by the emissions at
-    the very last sample of the padded tensor, where no later step can carry a clamped remainder: the log evidence
-    is exact (enumeration: log 1e-305, about -702.3), with and without a padding column after it."""
+@pytest.mark.parametrize("switch", [1e-305, 1e-310])
+def test_forward_exact_when_the_last_sample_has_a_tiny_mass(switch):
+    """A switch of probability 1e-305 (a normal number, above the recursion's clamp) or 1e-310 (subnormal, clamped)
+    forced by the emissions at the very last sample of the padded tensor, where no later step can carry a clamped
+    remainder: the log evidence is exact (enumeration: log of the switch's probability), from forward_log_likelihood
+    and forward_filter, with and without a padding column after it. (Before the fix the subnormal case recorded the
+    clamped mass as the smallest normal number: too high by log(tiny / mass), about 5.4 nats.)"""
     T = 4
     le = torch.full((1, T, 2), -1000.0, dtype=F64)
     le[:, : T - 1, 0] = 0.0
     le[:, T - 1, 1] = 0.0
-    P = torch.tensor([[[1 - 1e-305, 1e-305], [1e-305, 1 - 1e-305]]], dtype=F64)
+    P = torch.tensor([[[1 - switch, switch], [switch, 1 - switch]]], dtype=F64)
     init = torch.tensor([[1.0, 0.0]], dtype=F64)
     lengths = torch.tensor([T])
     want = _logsumexp(_enumerate(le[0], init[0], P[0], T).values())
-    assert want == pytest.approx(math.log(1e-305), abs=1e-9)
+    assert want == pytest.approx(math.log(switch), abs=1e-9)
     assert float(forward_log_likelihood(le, init, P, lengths)[0]) == pytest.approx(want, abs=1e-9)
     assert float(forward_filter(le, init, P, lengths)[1][0]) == pytest.approx(want, abs=1e-9)
-    padded = torch.cat([le, torch.zeros(1, 1, 2, dtype=F64)], 1)
+    padded = torch.cat([le, torch.zeros(1, 1, 2, dtype=F64)], 1)  # one padding column carries the rest
     assert float(forward_log_likelihood(padded, init, P, lengths)[0]) == pytest.approx(want, abs=1e-9)
 
 
 # ------------------------------------------------------------------ the recursion's numerical edge cases
-def test_forward_exact_when_the_last_sample_has_a_subnormal_mass():
-    """A switch of probability 1e-310 that the emissions force at the very last sample of the padded tensor: the
-    log evidence (about -713.8) must not depend on whether the tensor has one more padding column. (Before the fix
-    the last step's clamped mass was recorded as the smallest normal number with no later step to carry the rest:
-    too high by log(tiny / mass), about 5.4 nats.)"""
-    T = 4
-    le = torch.full((1, T, 2), -1000.0, dtype=F64)
-    le[:, : T - 1, 0] = 0.0
-    le[:, T - 1, 1] = 0.0
-    P = torch.tensor([[[1 - 1e-310, 1e-310], [1e-310, 1 - 1e-310]]], dtype=F64)
-    init = torch.tensor([[1.0, 0.0]], dtype=F64)
-    lengths = torch.tensor([T])
-    want = _logsumexp(_enumerate(le[0], init[0], P[0], T).values())
-    assert want == pytest.approx(math.log(1e-310), abs=1e-9)
-    padded = forward_log_likelihood(torch.cat([le, torch.zeros(1, 1, 2, dtype=F64)], 1), init, P, lengths)
-    assert float(padded[0]) == pytest.approx(want, abs=1e-9)  # one padding column carries the rest: exact
-    assert float(forward_log_likelihood(le, init, P, lengths)[0]) == pytest.approx(want, abs=1e-9)
-
-
 def test_forward_finite_when_the_only_possible_state_is_800_nats_behind():
     """Two absorbing states (P = I), sample 0 favours state 0 and sample 1 state 1, each by 800 nats: both paths
     cost 800 nats, the log evidence is -800 (enumeration), not -inf; the same through the phase-expanded chain of a
