@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from lfd_torch.segmentation.features import ibp_log_prior, sample_ibp
-from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood, viterbi
+from lfd_torch.segmentation.states import backward_sample, ffbs, forward_filter, forward_log_likelihood, viterbi
 from lfd_torch.segmentation.transitions import (
     dirichlet_log_density_rows,
     dirichlet_multinomial_log_prob,
@@ -570,20 +570,30 @@ def test_forward_finite_when_the_only_possible_state_is_800_nats_behind():
         torch.testing.assert_close(labels, torch.softmax(ref, 0), atol=1e-9, rtol=0)
 
 
-@pytest.mark.xfail(strict=True, reason="backward_sample works on the filtered probabilities in linear space: p(s_0 = "
-                   "1 | x_0) = e^-800 is 0 there, so a draw that ends in label 1 finds no predecessor (a log-space "
-                   "backward pass would hold it; the likelihood and the filtered marginals are exact, test above)")
 def test_backward_draws_possible_paths_when_the_only_possible_state_is_800_nats_behind():
-    """The 800-nat case of the test above, D = 3: every backward draw is one of the two possible paths, labels
-    (0, 0, 0) or (1, 1, 1) with phases (0, 1, 2)."""
+    """The 800-nat case of the test above, D = 3: every FFBS draw (ffbs) is one of the two possible paths, labels
+    (0, 0, 0) or (1, 1, 1) with phases (0, 1, 2), in the enumerated proportions 1/2 : 1/2 (5 standard errors); in
+    probabilities alone (forward_filter, backward_sample) the draws ending in label 1 find no predecessor
+    (p(s_0 = 1 | x_0) = e^-800 underflows) and give the impossible path (5, 4, 5). An ordinary row drawn in the same
+    batch gets the probability-space draws: the same as backward_sample's with the same generator."""
     D, T = 3, 3
     pi = torch.tensor([[0.6, 0.4], [0.3, 0.7]], dtype=F64)
     rows = torch.tensor([[[0.0, -800.0], [-800.0, 0.0], [0.0, 0.0]]], dtype=F64)
     ei, eP = expand_min_duration(torch.tensor([[0.5, 0.5]], dtype=F64), pi[None], D)
     lengths = torch.tensor([T])
-    filtered, _ = forward_filter(rows.repeat_interleave(D, -1), ei, eP, lengths)
-    draws = backward_sample(filtered.repeat(200, 1, 1), eP.repeat(200, 1, 1), lengths.repeat(200),
-                            torch.Generator().manual_seed(3))
+    n = 4000
+    ele = rows.repeat_interleave(D, -1).repeat(n, 1, 1)
+    filtered, _ = forward_filter(ele, ei.repeat(n, 1), eP.repeat(n, 1, 1), lengths.repeat(n))
+    plain = backward_sample(filtered, eP.repeat(n, 1, 1), lengths.repeat(n), torch.Generator().manual_seed(3))
+    assert bool((plain[:, 0] == 2 * D - 1).any())  # impossible paths (5, 4, 5): no run starts in phase 2
+    draws = ffbs(ele, ei.repeat(n, 1), eP.repeat(n, 1, 1), lengths.repeat(n), torch.Generator().manual_seed(3))
     labels = draws // D
-    assert bool(((labels == 0).all(1) | (labels == 1).all(1)).all())  # one run, never the impossible (5, 5, 5)
+    assert bool(((labels == 0).all(1) | (labels == 1).all(1)).all())  # one run each
     assert bool((draws % D == torch.arange(T)).all())  # its phases 0, 1, 2
+    share = float((labels[:, 0] == 1).double().mean())
+    assert abs(share - 0.5) <= 5.0 * math.sqrt(0.25 / n)
+    # an ordinary row: ffbs gives backward_sample's draws
+    ordinary = torch.tensor([[[0.0, -1.0], [-0.5, -2.0], [-1.0, 0.0]]], dtype=F64).repeat_interleave(D, -1)
+    f2, _ = forward_filter(ordinary, ei, eP, lengths)
+    ref = backward_sample(f2, eP, lengths, torch.Generator().manual_seed(5))
+    assert torch.equal(ffbs(ordinary, ei, eP, lengths, torch.Generator().manual_seed(5)), ref)

@@ -34,7 +34,7 @@ from lfd_torch.segmentation.segmentation import (
     runs,
     segment,
 )
-from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood
+from lfd_torch.segmentation.states import backward_sample, ffbs, forward_filter, forward_log_likelihood
 from lfd_torch.segmentation.synthetic import SyntheticSteps, multi_step_demos
 
 __all__ = [
@@ -58,6 +58,7 @@ __all__ = [
     "ibp_log_prior",
     "sample_ibp",
     "forward_log_likelihood",
+    "ffbs",
     "forward_filter",
     "backward_sample",
     "SyntheticSteps",

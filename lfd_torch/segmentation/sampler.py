@@ -284,7 +284,7 @@ from lfd_torch.segmentation.blocks import (
     state_slots,
 )
 from lfd_torch.segmentation.features import ibp_log_prior, shared_log_odds, unique_feature_rate
-from lfd_torch.segmentation.states import backward_sample, forward_filter, forward_log_likelihood, used_states, viterbi
+from lfd_torch.segmentation.states import ffbs, forward_log_likelihood, used_states, viterbi
 from lfd_torch.segmentation.transitions import (
     dirichlet_log_density_rows,
     dirichlet_multinomial_log_prob,
@@ -1536,8 +1536,7 @@ class _Run:
         le = self._expand(self.loge.reshape(C * N, self.T, K), f, lengths, self._flat_dwell())
         init, P = expand_min_duration(initial_distribution(f, self.dtype), transition_matrix(self.eta.reshape(C * N, K, K), f), D)
         lengths = self.lengths.repeat(C)
-        filtered, _ = forward_filter(le, init, P, lengths)
-        es = backward_sample(filtered, P, lengths, self.gen).reshape(C, N, self.T)
+        es = ffbs(le, init, P, lengths, self.gen).reshape(C, N, self.T)
         self.s, self.phase = es // D, es % D
 
     def _sample_parameters(self) -> None:

@@ -11,8 +11,10 @@ Notation:
 The forward recursion is normalised at every step: a probability vector is carried with its log normaliser,
 which is the log-space forward algorithm with one ``exp`` per sample instead of a ``logsumexp`` over K^2 terms
 per step. Padding steps (t >= length) use a neutral emission (e = 1), so with row-stochastic transitions they
-do not change the likelihood. Backward sampling is parallel over
-time (a doubling scan of inverse-CDF maps).
+do not change the likelihood. A row whose scaled emissions underflow (every state it can reach more than ~745 nats
+behind the best one at some sample, so its mass becomes exactly 0) is redone in log space (a logsumexp over K^2
+terms per step), and :func:`ffbs` draws it from log filtered probabilities. Backward sampling steps back one
+sample at a time on the column of the state drawn after it (:func:`backward_sample`).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from torch import Tensor
 
 from lfd_torch.errors import ShapeMismatchError
 
-__all__ = ["forward_log_likelihood", "forward_filter", "backward_sample", "viterbi"]
+__all__ = ["forward_log_likelihood", "forward_filter", "backward_sample", "ffbs", "viterbi"]
 
 
 
@@ -50,9 +52,11 @@ def _scaled_emission(log_emission: Tensor, lengths: Tensor) -> tuple[Tensor, Ten
 
 
 def _forward(
-    log_emission: Tensor, initial: Tensor, transition: Tensor, lengths: Tensor, keep: bool
-) -> tuple[Tensor | None, Tensor]:
-    """Normalised forward recursion alpha_t = normalise((alpha_{t-1} transition) * e_t); returns (filtered, log lik)."""
+    log_emission: Tensor, initial: Tensor, transition: Tensor, lengths: Tensor, keep: bool, log: bool = False
+) -> tuple[Tensor | None, Tensor, Tensor]:
+    """Normalised forward recursion alpha_t = normalise((alpha_{t-1} transition) * e_t); returns (filtered, log lik,
+    redone), the filtered probabilities as logarithms with ``log``, ``redone`` (B,) bool the rows computed in log
+    space."""
     _check(log_emission, initial, transition, lengths)
     B, T, K = log_emission.shape
     e, m, valid = _scaled_emission(log_emission, lengths)
@@ -89,26 +93,28 @@ def _forward(
         log_filtered, log_lik_rows = _log_forward(log_emission[rows], initial[rows], transition[rows], valid[rows])
         log_lik = log_lik.index_copy(0, rows, log_lik_rows)
     if not keep:
-        return None, log_lik
+        return None, log_lik, dead
     filtered = torch.cat(out, 1)
+    if log:
+        filtered = torch.log(filtered)
     if bool(dead.any()):
-        redone = torch.exp(log_filtered - log_filtered.logsumexp(-1, keepdim=True)).nan_to_num_(0.0)
-        filtered = filtered.index_copy(0, rows, redone)
+        redone = (log_filtered - log_filtered.logsumexp(-1, keepdim=True)).nan_to_num_(-math.inf)  # -inf: impossible
+        filtered = filtered.index_copy(0, rows, redone if log else torch.exp(redone))
     last = (lengths - 1).clamp_min(0)
     index = torch.minimum(torch.arange(T, device=e.device).unsqueeze(0), last.unsqueeze(1))
-    return filtered.gather(1, index.unsqueeze(-1).expand(B, T, K)), log_lik
+    return filtered.gather(1, index.unsqueeze(-1).expand(B, T, K)), log_lik, dead
 
 
 def _log_forward(log_emission: Tensor, initial: Tensor, transition: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
     """The forward recursion in log space, log alpha_t = logsumexp_j(log alpha_{t-1, j} + log P_jk) + l_t (padding
     steps neutral): (B, T, K) log alpha and (B,) log likelihoods. A logsumexp over K^2 terms per step, for the rows
     the normalised recursion cannot hold (:func:`_forward`)."""
-    B, T, K = log_emission.shape
-    log_p = torch.log(transition).unsqueeze(0)  # (1, B, K, K)
+    T = log_emission.shape[1]
+    log_p = torch.log(transition)  # (B, K, K)
     le = log_emission.masked_fill(~valid.unsqueeze(-1), 0.0)
     steps = [torch.log(initial) + le[:, 0]]
     for t in range(1, T):
-        steps.append(torch.logsumexp(steps[-1].unsqueeze(-1) + log_p[0], 1) + le[:, t])
+        steps.append(torch.logsumexp(steps[-1].unsqueeze(-1) + log_p, 1) + le[:, t])
     log_alpha = torch.stack(steps, 1)
     return log_alpha, torch.logsumexp(log_alpha[:, -1], -1)
 
@@ -129,7 +135,7 @@ def forward_log_likelihood(log_emission: Tensor, initial: Tensor, transition: Te
 
 
 def forward_filter(
-    log_emission: Tensor, initial: Tensor, transition: Tensor, lengths: Tensor
+    log_emission: Tensor, initial: Tensor, transition: Tensor, lengths: Tensor, log: bool = False
 ) -> tuple[Tensor, Tensor]:
     """Filtered state probabilities p(s_t | x_{0:t}) and the log likelihood.
 
@@ -138,16 +144,20 @@ def forward_filter(
         initial: (B, K).
         transition: (B, K, K).
         lengths: (B,) long, >= 1.
+        log: return log p(s_t | x_{0:t}) instead: it keeps the probabilities that underflow to 0 in a sequence
+            whose reachable states fall more than ~745 nats behind the best one (redone in log space), which
+            :func:`backward_sample` with ``log=True`` needs there.
 
     Returns:
         filtered (B, T, K) (rows of padding repeat the last valid one) and log likelihood (B,).
     """
-    filtered, log_lik = _forward(log_emission, initial, transition, lengths, keep=True)
+    filtered, log_lik, _ = _forward(log_emission, initial, transition, lengths, keep=True, log=log)
     assert filtered is not None
     return filtered, log_lik
 
 
-def backward_sample(filtered: Tensor, transition: Tensor, lengths: Tensor, generator: torch.Generator) -> Tensor:
+def backward_sample(filtered: Tensor, transition: Tensor, lengths: Tensor, generator: torch.Generator,
+                    log: bool = False) -> Tensor:
     """Draw state sequences from p(s_{0:T-1} | x) given filtered probabilities (blocked Gibbs step).
 
     s_{T_i-1} ~ filtered_{T_i-1}; s_t ~ filtered_t(j) transition(j, s_{t+1}) for t < T_i - 1. With one uniform
@@ -156,7 +166,9 @@ def backward_sample(filtered: Tensor, transition: Tensor, lengths: Tensor, gener
     for the sampler's phase-expanded states is several times slower).
 
     Args:
-        filtered: (B, T, K) from :func:`forward_filter`.
+        filtered: (B, T, K) from :func:`forward_filter` (its logarithms with ``log``: each step's weights are then
+            exp(log filtered + log transition - their max), the same draws as in probabilities where those do not
+            underflow).
         transition: (B, K, K).
         lengths: (B,) long.
         generator: source of randomness.
@@ -165,12 +177,20 @@ def backward_sample(filtered: Tensor, transition: Tensor, lengths: Tensor, gener
         (B, T) long; padding repeats the last valid state.
     """
     B, T, K = filtered.shape
+    if log:
+        log_p = torch.log(transition)
+
+    def weights(log_w: Tensor) -> Tensor:
+        """exp(log_w - its row max) (B, K); rows of -inf stay 0."""
+        top = log_w.amax(-1, keepdim=True)
+        return torch.exp(log_w - torch.where(torch.isfinite(top), top, torch.zeros_like(top)))
+
     last = (lengths - 1).clamp_min(0)
     rows = torch.arange(B, device=filtered.device)
     uniforms = torch.rand(B, T + 1, generator=generator, dtype=filtered.dtype, device=filtered.device)
     # terminal draw s_{T_i - 1} ~ filtered_{T_i - 1}
     end = filtered[rows, last]
-    cdf_end = end.cumsum(-1)
+    cdf_end = (weights(end) if log else end).cumsum(-1)
     s_end = (cdf_end <= (uniforms[:, T] * cdf_end[:, -1]).unsqueeze(-1)).sum(-1).clamp_max(K - 1)
     # s_t = g_t(s_{t+1}), g_t(j) = inverse CDF of filtered_t(i) transition(i, j) over i at u_t: only the column of
     # the drawn s_{t+1} is needed, (B, K) per step instead of the (B, T, K, K) maps of a parallel scan
@@ -178,12 +198,37 @@ def backward_sample(filtered: Tensor, transition: Tensor, lengths: Tensor, gener
     out = torch.empty(B, T, dtype=torch.long, device=filtered.device)
     nxt = s_end
     for t in range(T - 1, -1, -1):
-        column = transition.gather(2, nxt.view(B, 1, 1).expand(B, K, 1)).squeeze(-1)  # transition(i, s_{t+1})
-        cdf = (filtered[:, t] * column).cumsum(-1)
+        pick = nxt.view(B, 1, 1).expand(B, K, 1)
+        if log:
+            cdf = weights(filtered[:, t] + log_p.gather(2, pick).squeeze(-1)).cumsum(-1)
+        else:
+            column = transition.gather(2, pick).squeeze(-1)  # transition(i, s_{t+1})
+            cdf = (filtered[:, t] * column).cumsum(-1)
         cur = (cdf <= (uniforms[:, t] * cdf[:, -1]).unsqueeze(-1)).sum(-1).clamp_max(K - 1)
         cur = torch.where(terminal[:, t], s_end, cur)
         out[:, t] = cur
         nxt = cur
+    return out
+
+
+def ffbs(log_emission: Tensor, initial: Tensor, transition: Tensor, lengths: Tensor, generator: torch.Generator
+         ) -> Tensor:
+    """Forward filtering, backward sampling: (B, T) long state sequences drawn from p(s | x).
+
+    In probabilities (:func:`forward_filter`, :func:`backward_sample`), except the rows whose forward recursion had
+    to be redone in logarithms (every reachable state more than ~745 nats behind the best one at some sample, where
+    the filtered probabilities underflow and a backward step could find no predecessor): those are drawn again in
+    logarithms, whatever their first draw (chosen by the forward pass, not by the draw, so the redraw is unbiased).
+    The other rows are the probability-space draws, their random numbers untouched by the redraw.
+
+    Args: as :func:`forward_filter`, and the generator of :func:`backward_sample`.
+    """
+    filtered, _, redone = _forward(log_emission, initial, transition, lengths, keep=True)
+    out = backward_sample(filtered, transition, lengths, generator)
+    if bool(redone.any()):
+        b = torch.nonzero(redone).view(-1)
+        log_filtered, _ = forward_filter(log_emission[b], initial[b], transition[b], lengths[b], log=True)
+        out = out.index_copy(0, b, backward_sample(log_filtered, transition[b], lengths[b], generator, log=True))
     return out
 
 
