@@ -239,18 +239,20 @@ def test_viterbi_breaks_ties_towards_the_lower_state_index():
 
 
 # ------------------------------------------------------------------ backward sampling
-def test_backward_sampling_frequencies_match_the_enumerated_posterior():
+@pytest.mark.parametrize("log", [False, True])
+def test_backward_sampling_frequencies_match_the_enumerated_posterior(log):
     """backward_sample(forward_filter(...)) draws whole paths from p(s | x): 20000 draws per sequence against the
     enumerated posterior over all K^L paths, for the possible sequences of ``_hmm_batch`` (lengths 5, 3, 1, 4, 5;
     unusable states and forbidden moves never drawn); the padding repeats the last valid state. The impossible
     sequence 5 (all-zero filtered rows) has no posterior, but its labels stay in 0..K-1 and it does not break
-    the batch."""
+    the batch. The same in logarithms (``log=True`` for both)."""
     le, init, P, lengths = _hmm_batch(torch.Generator().manual_seed(105))
     B, T, K = le.shape
-    filtered, _ = forward_filter(le, init, P, lengths)
+    filtered, _ = forward_filter(le, init, P, lengths, log=log)
     n = 20000
     gen = torch.Generator().manual_seed(205)
-    draws = backward_sample(filtered.repeat(n, 1, 1), P.repeat(n, 1, 1), lengths.repeat(n), gen).reshape(n, B, T)
+    draws = backward_sample(filtered.repeat(n, 1, 1), P.repeat(n, 1, 1), lengths.repeat(n), gen, log=log
+                            ).reshape(n, B, T)
     assert int(draws.min()) >= 0 and int(draws.max()) < K
     for b in range(B - 1):
         L = int(lengths[b])
