@@ -160,6 +160,22 @@ def test_block_evidence_equals_the_dense_gaussian_of_the_increments(slopes):
         assert float(got[b]) == pytest.approx(ref, abs=1e-7, rel=1e-10)
 
 
+def test_block_evidence_without_a_constant_last_regressor():
+    """With the last midpoint regressor the constant 1, the own offset's column is the field offset's and
+    ``block_sequence_terms`` whitens it once; with any other last regressor (here random, or 0 as a data-blind
+    caller passes) the two columns differ and the evidence is still the dense model's."""
+    xbar, sbar, var, zmid, valid = _block_data(3, d=2)
+    labels, straight = _labellings(xbar.shape[1])
+    g = torch.Generator().manual_seed(4)
+    for last in (torch.randn(zmid.shape[:-1], generator=g, dtype=F64), torch.zeros(zmid.shape[:-1], dtype=F64)):
+        z = torch.cat([zmid[..., :-1], last.unsqueeze(-1)], -1)
+        got = block_log_evidence(xbar, sbar, var, z, valid, labels, straight, tolerance=0.3, spread=0.07,
+                                 slope_scale=1.4)
+        for b in range(4):
+            ref = _dense_evidence(xbar, sbar, var, z, valid, labels[b], straight[b], 0.3, 0.07, [1.4] * 4)
+            assert float(got[b]) == pytest.approx(ref, abs=1e-7, rel=1e-10)
+
+
 def test_block_sequence_shares_sum_to_the_evidence_of_any_subset_of_sequences():
     """Each sequence's share (``block_sequence_terms``) combined alone is the dense evidence of that sequence alone;
     the shares of all sequences minus one of them (``BlockTerms.add_to`` with sign -1) combined are the dense
