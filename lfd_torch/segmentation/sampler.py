@@ -973,25 +973,22 @@ class _Run:
         R = order.shape[-1]
         canon = torch.where(valid, torch.gather(rank, -1, rows), 0)
         key = torch.cat([seq.unsqueeze(-1), canon, torch.gather(straight, -1, order).long()], -1)
-        # a row's name: the bytes of its key up to the components of the states it uses (those of unused slots do not
-        # count); rows using r states have names of one length, deduplicated by one sort per r
-        n_used = uses.sum(-1).cpu().numpy()
-        key_np = key.cpu().numpy()
-        names: list[bytes] = []
-        first_parts, inverse = [], np.empty(P, dtype=np.int64)
-        for r in np.unique(n_used).tolist():
-            idx = np.nonzero(n_used == r)[0]
-            part = np.ascontiguousarray(key_np[idx, : T + 1 + r])
-            distinct, at, inv = np.unique(part.view(np.dtype((np.void, part.shape[1] * part.itemsize))).ravel(),
-                                          return_index=True, return_inverse=True)
-            inverse[idx] = len(names) + inv.reshape(-1)
-            names.extend(distinct.tolist())
-            first_parts.append(idx[at])
-        first = np.concatenate(first_parts)  # the first row of each distinct name
-        key = key[torch.from_numpy(first).to(rows.device)]
-        inverse = torch.from_numpy(inverse).to(rows.device)
+        # a row's name: its key up to the components of the states it uses (those of unused slots do not count)
+        n_used = uses.sum(-1).tolist()
+        distinct: dict[bytes, int] = {}
+        first: list[int] = []  # the first row of each distinct name
+        inverse_rows = []
+        for j, (k, r) in enumerate(zip(key.cpu().numpy(), n_used)):
+            name = k[: T + 1 + r].tobytes()
+            if name not in distinct:
+                distinct[name] = len(first)
+                first.append(j)
+            inverse_rows.append(distinct[name])
+        names = list(distinct)
+        key = key[torch.tensor(first, device=rows.device)]
+        inverse = torch.tensor(inverse_rows, device=rows.device)
         U, q = key.shape[0], 1 + p
-        used = n_used[first].tolist()  # states each distinct row uses
+        used = [n_used[j] for j in first]  # states each distinct row uses
         bank = self._share_bank
         found = [bank.index.get(name) for name in names]  # (r, slot) of the rows scored before
         gram = key.new_zeros(U, R * q, R * q, dtype=self.dtype)
