@@ -94,7 +94,11 @@ def validate_table(frame: pd.DataFrame, *, where: str = "table") -> None:
     with_nulls = [c for c in REQUIRED_COLUMNS if frame[c].isna().any()]
     if with_nulls:
         raise StoreError(f"{where}: null values in required column(s) {with_nulls}")
-    duplicated = frame.duplicated(subset=list(KEY_COLUMNS), keep=False)
+    try:
+        duplicated = frame.duplicated(subset=list(KEY_COLUMNS), keep=False)
+    except TypeError as exc:  # a key cell that is not a scalar (a list, an array) cannot be compared
+        bad = [c for c in KEY_COLUMNS if not frame[c].map(pd.api.types.is_scalar).all()]
+        raise StoreError(f"{where}: key column(s) {bad} hold values that are not scalars ({exc})") from exc
     if duplicated.any():
         examples = frame.loc[duplicated, list(KEY_COLUMNS)].drop_duplicates().head(3).to_dict("records")
         raise StoreError(
@@ -225,10 +229,18 @@ def read_manifest(path: str | os.PathLike[str]) -> dict[str, Any] | None:
     """The run manifest stored with a results table, or None if it was written without one.
 
     Raises:
-        StoreError: the file is missing or unreadable.
+        StoreError: the file is missing or unreadable, or its manifest is not a JSON object.
     """
     raw = _schema_metadata(path).get(MANIFEST_METADATA_KEY)
-    return None if raw is None else json.loads(raw)
+    if raw is None:
+        return None
+    try:
+        manifest = json.loads(raw)
+    except ValueError as exc:  # JSONDecodeError and UnicodeDecodeError both derive from it
+        raise StoreError(f"{os.fspath(path)}: its run manifest is not valid JSON ({exc})") from exc
+    if not isinstance(manifest, dict):
+        raise StoreError(f"{os.fspath(path)}: its run manifest is a {type(manifest).__name__}, not a JSON object")
+    return manifest
 
 
 def written_at_ns(path: str | os.PathLike[str], metadata: Mapping[bytes, bytes] | None = None) -> int:
