@@ -15,9 +15,10 @@ import pytest
 import torch
 from scipy.stats import multivariate_normal
 
+from conftest import certified_primitive
+
 from lfd_torch.ds import StablePrimitive
 from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError
-from lfd_torch.gmm import GMM
 from lfd_torch.metrics import dtw_distance
 from lfd_torch.modulation import (
     Branch,
@@ -42,25 +43,6 @@ def T(a) -> torch.Tensor:
 def _spd(rng: np.random.Generator, d: int, scale: float = 1.0, floor: float = 0.3) -> np.ndarray:
     B = rng.standard_normal((d, d))
     return scale * (B @ B.T / d + floor * np.eye(d))
-
-
-def _primitive(d: int, K: int, seed: int) -> StablePrimitive:
-    """A certified primitive (A_k = P^-1 (-Q_k / 2 + skew_k), P != I) with its goal away from the origin."""
-    rng = np.random.default_rng(seed)
-    Qr, _ = np.linalg.qr(rng.standard_normal((d, d)))
-    P = Qr @ np.diag(np.logspace(0, -1, d)) @ Qr.T
-    P = 0.5 * (P + P.T)
-    A = []
-    for _ in range(K):
-        Sk = rng.standard_normal((d, d))
-        A.append(np.linalg.solve(P, -0.5 * (_spd(rng, d, floor=0.5)) + (Sk - Sk.T)))
-    g = 3.0 + rng.standard_normal(d)
-    means = g + 2.0 * rng.standard_normal((K, d))
-    covs = [_spd(rng, d, floor=0.4) for _ in range(K)]
-    vcovs = [_spd(rng, d, scale=2.0) for _ in range(K)]
-    w = rng.uniform(0.5, 1.5, K)
-    gmm = GMM(T(w / w.sum()), T(means), T(covs))
-    return StablePrimitive(gmm=gmm, A=T(A), attractor=T(g), P=T(P), velocity_covariances=T(vcovs))
 
 
 def _h2_scipy(pi, mx, Sx, A, g, S, x) -> float:
@@ -146,7 +128,7 @@ def test_reference_entropy_forwards_the_velocity_covariance_override() -> None:
     override, quantile None is the scipy H2(g) of the overridden mixture and quantile q the numpy linear q-quantile of
     the overridden H2 over the training states (not those of the primitive's own S_k); a bool quantile is refused
     like any value that is not a number in [0, 1]."""
-    prim = _primitive(2, 3, seed=33)
+    prim = certified_primitive(2, 3, seed=33)
     rng = np.random.default_rng(34)
     x = prim.gmm.means.numpy()[[0, 1, 2, 0, 2, 1]] + rng.standard_normal((6, 2))
     iso = np.stack([np.eye(2) * v for v in (0.3, 4.0, 12.0)])
@@ -201,7 +183,7 @@ def test_duck_typed_primitive_needs_the_override_and_rejects_non_finite_position
 def test_modulation_reference_entropy_uses_its_entropy_quantile() -> None:
     """Property (Modulation.entropy_quantile docstring): Modulation(entropy_quantile=q).reference_entropy(prim, x)
     is the numpy linear q-quantile of the scipy H2 over the training states, and with q = None the H2 of the goal."""
-    prim = _primitive(2, 3, seed=36)
+    prim = certified_primitive(2, 3, seed=36)
     rng = np.random.default_rng(37)
     x = prim.gmm.means.numpy()[[0, 1, 2, 1, 0, 2, 2]] + 1.5 * rng.standard_normal((7, 2))
     want = np.array([_h2_of(prim, xb) for xb in x])

@@ -15,9 +15,10 @@ import torch
 from py_trees.common import Status
 from scipy.stats import multivariate_normal
 
+from conftest import certified_primitive
+
 from lfd_torch.ds import StablePrimitive
 from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError
-from lfd_torch.gmm import GMM
 from lfd_torch.modulation import (
     Branch,
     Modulation,
@@ -208,34 +209,6 @@ def test_modulated_velocity_rejects_non_finite_vectors_and_mixed_dtypes() -> Non
             modulated_velocity(x, f, g.float(), log_p_own=0.0, log_p_other=-1.0, h2=0.0, h2_ref=1.0, mode=mode)
 
 
-def _primitive(d: int, K: int, seed: int) -> StablePrimitive:
-    """A certified primitive with a goal far from the origin, non-symmetric A_k and P != I:
-    A_k = P^-1 (-Q_k / 2 + skew_k) so that A_k^T P + P A_k = -Q_k."""
-    rng = np.random.default_rng(seed)
-    Qr, _ = np.linalg.qr(rng.standard_normal((d, d)))
-    P = Qr @ np.diag(np.logspace(0, -1, d)) @ Qr.T
-    P = 0.5 * (P + P.T)
-    A = []
-    for _ in range(K):
-        B = rng.standard_normal((d, d))
-        Qk = B @ B.T + 0.5 * np.eye(d)
-        Sk = rng.standard_normal((d, d))
-        A.append(np.linalg.solve(P, -0.5 * Qk + (Sk - Sk.T)))
-    g = 3.0 + rng.standard_normal(d)
-    means = g + 2.0 * rng.standard_normal((K, d))
-    covs = []
-    vcovs = []
-    for _ in range(K):
-        B = rng.standard_normal((d, d))
-        covs.append(B @ B.T / d + 0.4 * np.eye(d))
-        B = rng.standard_normal((d, d))
-        vcovs.append(2.0 * (B @ B.T / d + 0.3 * np.eye(d)))
-    w = rng.uniform(0.5, 1.5, K)
-    T = lambda a: torch.tensor(np.asarray(a), dtype=F64)  # noqa: E731
-    gmm = GMM(T(w / w.sum()), T(means), T(covs))
-    return StablePrimitive(gmm=gmm, A=T(A), attractor=T(g), P=T(P), velocity_covariances=T(vcovs))
-
-
 def _h2_reference(prim: StablePrimitive, x: np.ndarray, S: np.ndarray | None = None) -> float:
     """Eq. 15 with the NOTES 4a/4b corrections, double loop with scipy densities."""
     pi, mx, Sx = prim.gmm.weights.numpy(), prim.gmm.means.numpy(), prim.gmm.covariances.numpy()
@@ -254,7 +227,7 @@ def test_modulation_call_passes_its_configuration_and_the_documented_defaults() 
     modulated_velocity with the same arguments and H2 from renyi_entropy), mode 'none' evaluates the primitive when
     f is None, entropy_quantile=None with h2_ref=None means H2(g), and field() takes log p(x|A_m-) = -inf when no
     other subtask density is given."""
-    prim = _primitive(2, 3, seed=5)
+    prim = certified_primitive(2, 3, seed=5)
     rng = np.random.default_rng(6)
     g = prim.attractor
     x = g + torch.tensor(rng.standard_normal((40, 2)) * 2.0, dtype=F64)
@@ -352,7 +325,7 @@ def test_renyi_entropy_and_reference_entropy_against_a_scipy_double_loop() -> No
     N(x; mu_k^x, Sigma_k^x) unnormalised, mu_k = A_k (x - g) with g far from 0 and A_k non-symmetric, S_k the
     primitive's velocity covariances or the override); H2(x_r) with quantile None is H2(g) and with quantile q the
     numpy linear-interpolated q-quantile of H2 over the training states; bad inputs are typed errors."""
-    prim = _primitive(2, 3, seed=21)
+    prim = certified_primitive(2, 3, seed=21)
     rng = np.random.default_rng(22)
     x = prim.gmm.means.numpy()[[0, 1, 2, 0, 1]] + rng.standard_normal((5, 2))
     T = lambda a: torch.tensor(a, dtype=F64)  # noqa: E731
