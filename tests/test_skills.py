@@ -352,6 +352,9 @@ def test_pushes_are_labelled_by_where_they_land(l_library: SkillLibrary) -> None
         B, generator=torch.Generator().manual_seed(7), n_pushes=2, window=(20, 120),
         magnitude=(0.1 * l_library.span, 0.8 * l_library.span)))  # fmt: skip
     assert torch.equal(again.result.positions, out.result.positions)
+    # a plan for another number of robots is refused before the rollout (it crashed inside torch at the first push)
+    with pytest.raises(ShapeMismatchError, match="pushes"):
+        eng.rollout(x0[:3], dt=0.01, n_steps=200, pushes=plan)
 
 
 def test_subtask_spaces_tell_the_steps_apart(l_library: SkillLibrary) -> None:

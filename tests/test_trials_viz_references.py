@@ -136,7 +136,11 @@ def test_wilson_interval_with_another_z_matches_scipy():
     for bad in ((-1, 4), (5, 4)):
         with pytest.raises(InvalidArgumentError):
             wilson_interval(*bad)
-    assert all(math.isnan(v) for v in wilson_interval(0, -3))
+    assert all(math.isnan(v) for v in wilson_interval(0, 0))  # no trials: no interval
+    for bad, name in (((0, -3), "n"), ((3, 10.5), "n"), ((2.0, 4), "successes"), ((3, 10, math.nan), "z"),
+                      ((3, 10, -1.96), "z"), ((3, "10"), "n")):
+        with pytest.raises(InvalidArgumentError, match=name):
+            wilson_interval(*bad)
 
 
 def test_trial_batch_success_reads_the_strict_verdict():

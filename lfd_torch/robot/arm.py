@@ -25,6 +25,7 @@ from lfd_torch.robot.urdf import (
     baxter_left_urdf,
     rpy_to_matrix,
 )
+from lfd_torch.utils import check_float
 
 __all__ = ["BaxterArm", "check_joint_tensor", "FRAME_NAMES", "LIMIT_TOLERANCE", "NEUTRAL_POSE"]
 
@@ -141,9 +142,11 @@ class BaxterArm:
         """Validate ``q`` (..., 7) and check ``lower - tol <= q <= upper + tol``.
 
         Raises:
-            InvalidArgumentError: naming ``name``, the first violating joint and its value.
+            InvalidArgumentError: naming ``name``, the first violating joint and its value; ``tol`` not a finite
+                number >= 0.
         """
         q = check_joint_tensor(q, name)
+        tol = check_float(tol, "tol", low=0.0)
         lo, hi = self.lower(q.dtype, q.device), self.upper(q.dtype, q.device)
         bad = (q < lo - tol) | (q > hi + tol)
         if bool(bad.any()):
@@ -158,6 +161,7 @@ class BaxterArm:
     def within_limits(self, q: torch.Tensor, tol: float = 0.0) -> torch.Tensor:
         """(...,) bool: every joint of ``q`` (..., 7) within its position limits (+- ``tol`` rad)."""
         q = check_joint_tensor(q)
+        tol = check_float(tol, "tol", low=0.0)
         return ((q >= self.lower(q.dtype, q.device) - tol) & (q <= self.upper(q.dtype, q.device) + tol)).all(-1)
 
     # ------------------------------------------------------------------ kinematics

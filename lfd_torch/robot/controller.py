@@ -47,9 +47,32 @@ def _vec7(values, name: str, dtype=torch.float64) -> torch.Tensor:
     return t
 
 
+def _same_shape(q: torch.Tensor, **others: torch.Tensor) -> None:
+    """Raise ShapeMismatchError naming the first of ``others`` whose shape is not that of ``q``."""
+    for name, x in others.items():
+        if x.shape != q.shape:
+            raise ShapeMismatchError(f"{name} must have the shape of q {tuple(q.shape)}, got {tuple(x.shape)}")
+
+
 def orientation_error(rot: torch.Tensor, rot_des: torch.Tensor) -> torch.Tensor:
     """(..., 3) rotation vector (rad, base frame) of ``rot_des rot^T``: the angular displacement from ``rot``
-    (..., 3, 3) to ``rot_des`` (..., 3, 3); ``w = k * orientation_error`` is a proportional orientation command."""
+    (..., 3, 3) to ``rot_des`` (..., 3, 3); ``w = k * orientation_error`` is a proportional orientation command.
+
+    Raises:
+        ShapeMismatchError: either is not a float tensor (..., 3, 3), their dtypes differ, or their leading shapes
+            do not broadcast.
+    """
+    for name, x in (("rot", rot), ("rot_des", rot_des)):
+        if not isinstance(x, torch.Tensor) or not x.is_floating_point() or x.ndim < 2 or x.shape[-2:] != (3, 3):
+            raise ShapeMismatchError(f"{name} must be a float tensor of rotation matrices (..., 3, 3), got "
+                                     f"{tuple(getattr(x, 'shape', ())) or type(x).__name__}")  # fmt: skip
+    try:
+        torch.broadcast_shapes(rot.shape, rot_des.shape)
+    except RuntimeError as exc:
+        raise ShapeMismatchError(f"rot {tuple(rot.shape)} and rot_des {tuple(rot_des.shape)} do not broadcast"
+                                 ) from exc
+    if rot.dtype != rot_des.dtype:
+        raise ShapeMismatchError(f"rot is {rot.dtype} and rot_des {rot_des.dtype}: convert one with .to(dtype=...)")
     r = rot_des @ rot.transpose(-1, -2)
     axis = torch.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1)
     cos = ((r[..., 0, 0] + r[..., 1, 1] + r[..., 2, 2] - 1) / 2).clamp(-1.0, 1.0)
@@ -238,9 +261,14 @@ class ImpedanceController:
         """(B, 7) joint torque (N m): ``clamp(kp (q_d - q) + kv (qd_d - qd)) + gravity`` for (B, 7) inputs."""
         q = check_joint_tensor(q, "q")
         qd, q_d, qd_d = (check_joint_tensor(x, n) for x, n in ((qd, "qd"), (q_d, "q_d"), (qd_d, "qd_d")))
+        _same_shape(q, qd=qd, q_d=q_d, qd_d=qd_d)
         kp, kv, tmax = (t.to(q) for t in (self.stiffness, self.damping, self.effort_limits))
         tau = torch.maximum(torch.minimum(kp * (q_d - q) + kv * (qd_d - qd), tmax), -tmax)
-        return tau if gravity is None else tau + check_joint_tensor(gravity, "gravity")
+        if gravity is None:
+            return tau
+        gravity = check_joint_tensor(gravity, "gravity")
+        _same_shape(q, gravity=gravity)
+        return tau + gravity
 
     def reference(self, q, qdot, q_d_prev=None, dt: float = 0.01) -> tuple[torch.Tensor, torch.Tensor]:
         """Set-point for the next period: ``q_d = q + clamp(q_d_prev - q, +-max_lag) + dt qdot``, ``qd_d = qdot``.
@@ -249,7 +277,11 @@ class ImpedanceController:
         """
         q = check_joint_tensor(q, "q")
         qdot = check_joint_tensor(qdot, "qdot")
+        _same_shape(q, qdot=qdot)
         dt = _positive(dt, "dt", allow_zero=False)
-        lag = torch.zeros_like(q) if q_d_prev is None else (check_joint_tensor(q_d_prev, "q_d_prev") - q)
+        if q_d_prev is not None:
+            q_d_prev = check_joint_tensor(q_d_prev, "q_d_prev")
+            _same_shape(q, q_d_prev=q_d_prev)
+        lag = torch.zeros_like(q) if q_d_prev is None else q_d_prev - q
         lag = lag.clamp(-self.max_lag, self.max_lag)
         return q + lag + dt * qdot, qdot

@@ -34,12 +34,13 @@ import torch
 from torch import Tensor
 
 from lfd_torch.data import Demos
-from lfd_torch.errors import InvalidArgumentError, StoreError
+from lfd_torch.errors import InvalidArgumentError, NonIncreasingTimeError, ShapeMismatchError, StoreError
 from lfd_torch.robot.arm import NEUTRAL_POSE, BaxterArm
 from lfd_torch.robot.controller import orientation_error
 from lfd_torch.robot.plant import Scene
 from lfd_torch.robot.urdf import DEFAULT_TOOL_OFFSET
-from lfd_torch.utils import float_dtype
+from lfd_torch.store.atomic import atomic_path
+from lfd_torch.utils import check_generator, check_path, check_int, check_tensor, float_dtype
 
 __all__ = [
     "STAGE_NAMES",
@@ -85,6 +86,23 @@ class ScoopingDemonstration:
     stages: Tensor | None = None
     via_tip: Tensor | None = None
 
+    def __post_init__(self) -> None:
+        check_tensor(self.t, "t", ndim=1, min_rows=2, shape_hint="(T,)")
+        if not bool((self.t[1:] > self.t[:-1]).all()):
+            raise NonIncreasingTimeError("t must be strictly increasing")
+        T = self.t.shape[0]
+        check_tensor(self.tip, "tip", ndim=2, last_dim=3, shape_hint="(T, 3)")
+        for name, value, shape in (("tip", self.tip, (T, 3)), ("q", self.q, (T, 7)),
+                                   ("rotation", self.rotation, (T, 3, 3))):
+            if value is not None:
+                check_tensor(value, name, shape_hint=str(shape))
+                if tuple(value.shape) != shape:
+                    raise ShapeMismatchError(f"{name} must have shape {shape} (T = {T} samples of t), got "
+                                             f"{tuple(value.shape)}")  # fmt: skip
+        if self.stages is not None and (not isinstance(self.stages, Tensor) or self.stages.shape != (T,)):
+            raise ShapeMismatchError(f"stages must be a (T,) = ({T},) tensor or None, got "
+                                     f"{tuple(getattr(self.stages, 'shape', ())) or type(self.stages).__name__}")
+
     @property
     def n_samples(self) -> int:
         return int(self.t.shape[0])
@@ -124,7 +142,7 @@ def scooping_via_points(
     """
     sc = Scene.from_mapping(scene)
     can, cup = sc.can, sc.cup
-    g = generator
+    g = None if generator is None else check_generator(generator, where="scooping_via_points")
 
     def u(n: int = 1) -> Tensor:  # uniform in [-1, 1]
         if g is None:
@@ -197,9 +215,20 @@ def solve_ik(
 
     Raises:
         InvalidArgumentError: with ``strict``, a target not reached to 1 mm / 0.01 rad (out of reach); without it
-            the best joint angles found are returned and the caller checks the residual.
+            the best joint angles found are returned and the caller checks the residual. Also ``iterations`` < 1.
+        ShapeMismatchError / NonFiniteError: inputs of the wrong shapes, of different dtypes, or not finite.
     """
+    check_tensor(tip, "tip", ndim=2, last_dim=3, min_rows=1, shape_hint="(K, 3)")
     K = tip.shape[0]
+    check_tensor(rotation, "rotation", ndim=3, shape_hint="(K, 3, 3)")
+    check_tensor(q0, "q0", last_dim=7, shape_hint="(K, 7) or (7,)")
+    if rotation.shape != (K, 3, 3) or q0.shape not in ((7,), (K, 7)):
+        raise ShapeMismatchError(f"tip (K, 3), rotation (K, 3, 3) and q0 (K, 7) or (7,) expected, got "
+                                 f"{tuple(tip.shape)}, {tuple(rotation.shape)}, {tuple(q0.shape)}")
+    if not tip.dtype == rotation.dtype == q0.dtype:
+        raise ShapeMismatchError(f"tip, rotation and q0 must share one dtype, got {tip.dtype}, {rotation.dtype}, "
+                                 f"{q0.dtype}")  # fmt: skip
+    iterations = check_int(iterations, "iterations", low=1)
     q = q0.expand(K, 7).clone() if q0.ndim == 1 else q0.clone()
     posture = q.clone()
     lo, hi = arm.lower(q.dtype) + 1e-3, arm.upper(q.dtype) - 1e-3
@@ -410,7 +439,7 @@ def load_demonstration(
         InvalidArgumentError: joint angles outside the limits; an unknown extension.
     """
     dtype = float_dtype(dtype, allow_none=False)
-    p = Path(path)
+    p = check_path(path)
     ext = p.suffix.lower()
     if ext not in (".csv", ".npz"):
         raise InvalidArgumentError(f"path must end in .csv or .npz, got {str(p)!r}")
@@ -464,17 +493,27 @@ def _numeric(s: str) -> bool:
 
 def save_demonstration(demo: ScoopingDemonstration, path: str | os.PathLike[str], *, joints: bool = True) -> Path:
     """Write ``demo`` as CSV or NPZ (by the extension): time + joint angles (``joints`` and q known) or time +
-    tip positions. Returns the path."""
-    p = Path(path)
+    tip positions. The file is replaced atomically (a failed write leaves any earlier file as it was). Returns the
+    path.
+
+    Raises:
+        InvalidArgumentError: ``demo`` is not a :class:`ScoopingDemonstration`, ``path`` is not a path ending in
+            .csv or .npz.
+    """
+    if not isinstance(demo, ScoopingDemonstration):
+        raise InvalidArgumentError(f"demo must be a ScoopingDemonstration, got {type(demo).__name__}")
+    p = check_path(path)
+    ext = p.suffix.lower()
+    if ext not in (".csv", ".npz"):
+        raise InvalidArgumentError(f"path must end in .csv or .npz, got {str(p)!r}")
     use_q = joints and demo.q is not None
     vals = (demo.q if use_q else demo.tip).detach().cpu().double().numpy()
     t = demo.t.detach().cpu().double().numpy()
-    ext = p.suffix.lower()
-    if ext == ".csv":
-        head = "t," + (",".join(f"q{i}" for i in range(7)) if use_q else "x,y,z")
-        np.savetxt(p, np.concatenate([t[:, None], vals], 1), delimiter=",", header=head, comments="", fmt="%.17g")
-    elif ext == ".npz":
-        np.savez(p, t=t, **({"q": vals} if use_q else {"tip": vals}))
-    else:
-        raise InvalidArgumentError(f"path must end in .csv or .npz, got {str(p)!r}")
+    with atomic_path(p) as tmp, open(tmp, "wb") as fh:  # a handle: np.savez would add ".npz" to a bare name
+        if ext == ".csv":
+            head = "t," + (",".join(f"q{i}" for i in range(7)) if use_q else "x,y,z")
+            np.savetxt(fh, np.concatenate([t[:, None], vals], 1), delimiter=",", header=head, comments="",
+                       fmt="%.17g")
+        else:
+            np.savez(fh, t=t, **({"q": vals} if use_q else {"tip": vals}))
     return p

@@ -32,6 +32,7 @@ from lfd_torch.robot.controller import DLSVelocityMap, ImpedanceController, orie
 from lfd_torch.robot.demonstration import STAGE_NAMES, ScoopingDemonstration
 from lfd_torch.segmentation import Segmentation
 from lfd_torch.skills import Arrival, Decision, SkillEngine, SkillLibrary, SkillSettings
+from lfd_torch.utils import check_int, check_tensor
 
 __all__ = ["OrientationSchedule", "ScoopingTask", "learn_scooping", "ControlStep", "ScoopingController"]
 
@@ -48,13 +49,22 @@ class OrientationSchedule:
     """
 
     def __init__(self, positions: Tensor, rotations: Tensor, steps: Tensor, n_steps: int):
+        check_tensor(positions, "positions", ndim=2, last_dim=3, min_rows=1, shape_hint="(N, 3)")
+        check_tensor(rotations, "rotations", ndim=3, shape_hint="(N, 3, 3)")
         N = positions.shape[0]
-        if positions.shape != (N, 3) or rotations.shape != (N, 3, 3) or steps.shape != (N,):
+        if not isinstance(steps, Tensor) or steps.dtype not in (torch.int32, torch.int64):
+            raise ShapeMismatchError(f"steps must be an integer tensor (N,), got {getattr(steps, 'dtype', steps)!r}")
+        if rotations.shape != (N, 3, 3) or steps.shape != (N,):
             raise ShapeMismatchError(f"positions (N, 3), rotations (N, 3, 3), steps (N,) expected, got "
                                      f"{tuple(positions.shape)}, {tuple(rotations.shape)}, {tuple(steps.shape)}")
-        missing = sorted(set(range(n_steps)) - set(steps.tolist()))
+        n_steps = check_int(n_steps, "n_steps", low=1)
+        present = set(steps.tolist())
+        missing = sorted(set(range(n_steps)) - present)
         if missing:
             raise InvalidArgumentError(f"steps has no sample of step {missing[0]} of {n_steps}")
+        extra = sorted(present - set(range(n_steps)))
+        if extra:
+            raise InvalidArgumentError(f"steps holds step {extra[0]}, outside 0..{n_steps - 1} (n_steps={n_steps})")
         self.positions = positions
         self.rotations = rotations
         self.steps = steps.long()
@@ -74,7 +84,15 @@ class OrientationSchedule:
                                    self.steps.to(device=device), self.n_steps)  # fmt: skip
 
     def nearest(self, x: Tensor, step: Tensor) -> Tensor:
-        """(B,) index of the demonstration sample of step ``step`` (B,) nearest to ``x`` (B, 3)."""
+        """(B,) index of the demonstration sample of step ``step`` (B,) nearest to ``x`` (B, 3).
+
+        Raises:
+            ShapeMismatchError: x not (B, 3) or step not (B,); InvalidArgumentError: a step outside 0..M-1.
+        """
+        if x.ndim != 2 or x.shape[-1] != 3 or step.shape != x.shape[:1]:
+            raise ShapeMismatchError(f"x (B, 3) and step (B,) expected, got {tuple(x.shape)} and {tuple(step.shape)}")
+        if bool(((step < 0) | (step >= self.n_steps)).any()):
+            raise InvalidArgumentError(f"step must lie in 0..{self.n_steps - 1}, got {step.tolist()}")
         # direct differences, not the matrix-product form: the distances (and a near-tie's argmin) of one arm then
         # do not depend on which other arms share the batch, so split batches (workers) repeat a run exactly
         d2 = torch.cdist(x, self.positions.to(x), compute_mode="donot_use_mm_for_euclid_dist")  # (B, N)

@@ -45,9 +45,9 @@ from torch import Tensor
 from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError, UnknownNameError
 from lfd_torch.robot.arm import BaxterArm
 from lfd_torch.robot.demonstration import STAGE_NAMES, solve_ik
-from lfd_torch.robot.plant import BaxterPlant, Scene
+from lfd_torch.robot.plant import LINK_BODIES, BaxterPlant, Scene
 from lfd_torch.robot.task import ScoopingController, ScoopingTask
-from lfd_torch.utils import derive_seed
+from lfd_torch.utils import check_choice, check_float, check_generator, check_int, derive_seed
 
 __all__ = [
     "DISTURBANCE_KINDS",
@@ -66,6 +66,8 @@ __all__ = [
 DISTURBANCE_KINDS = ("force", "jump")
 FORBIDDEN_CONTACTS = ("can_wall", "cup_wall", "table")
 FORCE_BODIES = ("left_lower_elbow", "left_upper_forearm", "left_lower_forearm", "left_wrist")
+#: Bodies of the plant a force may act on: the arm's links and the spoon.
+DISTURBANCE_BODIES = tuple(b.link for b in LINK_BODIES) + ("spoon",)
 
 
 @dataclass(frozen=True)
@@ -93,16 +95,18 @@ class Disturbance:
     direction: tuple[float, float, float] = (1.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
-        if self.kind not in DISTURBANCE_KINDS:
-            raise UnknownNameError("disturbance kind", self.kind, DISTURBANCE_KINDS)
-        if self.label not in ("large", "small"):
-            raise UnknownNameError("disturbance label", self.label, ("large", "small"))
-        if not 0 <= self.stage < len(STAGE_NAMES):
-            raise InvalidArgumentError(f"stage must be in 0..{len(STAGE_NAMES) - 1}, got {self.stage}")
+        check_choice(self.kind, "disturbance kind", DISTURBANCE_KINDS)
+        check_choice(self.label, "disturbance label", ("large", "small"))
+        check_choice(self.body, "disturbance body", DISTURBANCE_BODIES)
+        check_int(self.stage, "stage", low=0, high=len(STAGE_NAMES) - 1)
         for name in ("delay", "magnitude", "duration"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise InvalidArgumentError(f"{name} must be a finite number >= 0, got {v!r}")
+            check_float(getattr(self, name), name, low=0.0)
+        d = self.direction
+        if not (isinstance(d, (tuple, list)) and len(d) == 3):
+            raise InvalidArgumentError(f"direction must be 3 numbers (a unit vector), got {d!r}")
+        norm = math.sqrt(sum(check_float(v, "direction") ** 2 for v in d))
+        if abs(norm - 1.0) > 1e-6:
+            raise InvalidArgumentError(f"direction must be a unit vector, got {d!r} (norm {norm:.6g})")
 
 
 def plan_disturbances(
@@ -127,6 +131,16 @@ def plan_disturbances(
     """
     if isinstance(n_trials, bool) or not isinstance(n_trials, int) or n_trials < 0:
         raise InvalidArgumentError(f"n_trials must be an int >= 0, got {n_trials!r}")
+    check_generator(generator, where="plan_disturbances")
+    for name, rng, low in (("force_large", force_large, 0.0), ("force_small", force_small, 0.0),
+                           ("jump_large", jump_large, 0.0), ("jump_small", jump_small, 0.0),
+                           ("duration", duration, 0.0), ("delay_fraction", delay_fraction, 0.0)):
+        if not (isinstance(rng, (tuple, list)) and len(rng) == 2):
+            raise InvalidArgumentError(f"{name} must be a (low, high) pair, got {rng!r}")
+        lo = check_float(rng[0], f"{name}[0]", low=low)
+        check_float(rng[1], f"{name}[1]", low=lo)
+    for j, v in enumerate(stage_durations):
+        check_float(v, f"stage_durations[{j}]", low=0.0)
     if not kinds or any(k not in DISTURBANCE_KINDS for k in kinds):
         raise InvalidArgumentError(f"kinds must name at least one of {DISTURBANCE_KINDS}, got {tuple(kinds)!r}")
     if not stages or any(isinstance(s, bool) or not isinstance(s, int) or not 0 <= s < len(stage_durations)
@@ -565,8 +579,16 @@ def check_trials(
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
-    """Wilson score interval (lower, upper) of a binomial proportion; ``z`` = 1.96 for 95 %. (nan, nan) for n = 0."""
-    if n <= 0:
+    """Wilson score interval (lower, upper) of a binomial proportion; ``z`` = 1.96 for 95 %. (nan, nan) for n = 0.
+
+    Raises:
+        InvalidArgumentError: ``successes`` or ``n`` not an integer, n < 0, successes outside [0, n], or ``z`` not a
+            finite number > 0.
+    """
+    n = check_int(n, "n", low=0)
+    successes = check_int(successes, "successes")
+    z = check_float(z, "z", low=0.0, low_open=True)
+    if n == 0:
         return (math.nan, math.nan)
     if not 0 <= successes <= n:
         raise InvalidArgumentError(f"successes must lie in [0, n={n}], got {successes}")

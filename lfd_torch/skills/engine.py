@@ -677,6 +677,9 @@ class SkillEngine:
         if pushes is not None and not isinstance(pushes, PushPlan):
             raise InvalidArgumentError(f"pushes must be a PushPlan (random_pushes(...)) or None, got {type(pushes).__name__}")
         B = x0.shape[0]
+        if pushes is not None and pushes.steps.shape[0] != B:
+            raise ShapeMismatchError(f"pushes plans {pushes.steps.shape[0]} robots (random_pushes(n=...)), x0 holds "
+                                     f"{B}")  # fmt: skip
         dev = x0.device
         T = int(n_steps) + 1
         route = torch.full((B,), -1, dtype=torch.long, device=dev)
