@@ -86,10 +86,36 @@ def float_dtype(dtype: torch.dtype | str | None, name: str = "dtype", *, allow_n
     err = error or InvalidArgumentError
     if (dtype is None and not allow_none) or (dtype is not None and not isinstance(dtype, (torch.dtype, str))):
         raise err(f"{name} must be float32 or float64 (a torch dtype or its name), got {_show(dtype)}")
+    if isinstance(dtype, str) and dtype.removeprefix("torch.") not in _DTYPES:
+        raise UnknownNameError(name, dtype, tuple(str(d).removeprefix("torch.") for d in FLOAT_DTYPES))
     out = resolve_dtype(dtype)
     if out is not None and out not in FLOAT_DTYPES:
         raise err(f"{name} must be float32 or float64, got {out}")
     return out
+
+
+def to_arguments(dtype: object, device: object, *, error: type[Exception] | None = None
+                 ) -> tuple[torch.dtype | None, torch.device | None]:
+    """The (dtype, device) of a ``.to(dtype, device)`` call, checked (:func:`float_dtype`, :func:`resolve_device`).
+
+    As with ``torch.Tensor.to``, a first argument that is a device or a device name (``"cuda"``, ``"cpu"``,
+    ``"auto"``, ``torch.device(...)``) is the device: ``model.to("cuda")`` moves the model.
+
+    Raises:
+        InvalidArgumentError: a device given twice, or one of the checks' errors.
+    """
+    is_device = isinstance(dtype, torch.device)
+    if isinstance(dtype, str) and dtype.removeprefix("torch.") not in _DTYPES:
+        try:
+            is_device = dtype == "auto" or isinstance(torch.device(dtype), torch.device)
+        except (RuntimeError, TypeError):
+            is_device = False
+    if is_device:
+        if device is not None:
+            raise InvalidArgumentError(f"the device is given twice: {_show(dtype)} (first argument) and "
+                                       f"device={_show(device)}")  # fmt: skip
+        dtype, device = None, dtype
+    return float_dtype(dtype, error=error), resolve_device(device)
 
 
 def derive_seed(*parts: object) -> int:

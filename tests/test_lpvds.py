@@ -436,6 +436,9 @@ def test_float32_velocities_near_a_goal_far_from_the_origin() -> None:
     near = (g + torch.tensor([[0.01, 0.02], [-0.03, 0.01]], dtype=torch.float64)).float()  # within 0.05 of g
     reference = prim(near.double())  # the same float32 positions, evaluated in float64
     assert torch.allclose(p32(near).double(), reference, rtol=1e-4, atol=0.0)
+    moved = prim.to("cpu")  # a device alone, as Tensor.to("cpu"): the same model (it was read as a dtype name)
+    assert moved.dtype == torch.float64 and torch.equal(moved(near.double()), reference)
+    assert prim.gmm.to("cpu").dtype == torch.float64 and prim.gmm.to("float32").dtype == torch.float32
 
 
 def test_residual_velocity_covariances_against_a_loop() -> None:

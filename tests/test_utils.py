@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from lfd_torch.errors import InvalidArgumentError, UnknownNameError
-from lfd_torch.utils import derive_seed, float_dtype, resolve_device, resolve_dtype
+from lfd_torch.utils import derive_seed, float_dtype, resolve_device, resolve_dtype, to_arguments
 
 
 def test_resolve_dtype_and_device():
@@ -35,6 +35,21 @@ def test_bad_dtype_and_device_arguments_are_typed_errors_naming_them():
         for cuda in ("cuda", torch.device("cuda:0")):
             with pytest.raises(InvalidArgumentError, match="CUDA is not available"):
                 resolve_device(cuda)
+
+
+def test_to_arguments_take_a_device_as_the_first_argument_like_torch():
+    """``model.to("cpu")`` moves the model, as ``Tensor.to("cpu")`` does (it read "cpu" as a dtype name)."""
+    cpu = torch.device("cpu")
+    assert to_arguments("cpu", None) == (None, cpu) and to_arguments(cpu, None) == (None, cpu)
+    assert to_arguments("auto", None)[1] is not None
+    assert to_arguments("float32", "cpu") == (torch.float32, cpu) and to_arguments(None, None) == (None, None)
+    with pytest.raises(UnknownNameError, match="float32, float64"):  # only the names float_dtype accepts
+        to_arguments("double precision", None)
+    with pytest.raises(InvalidArgumentError, match="twice"):
+        to_arguments("cpu", "cpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(InvalidArgumentError, match="CUDA is not available"):
+            to_arguments("cuda", None)
 
 
 def test_derive_seed_is_stable_and_distinct():

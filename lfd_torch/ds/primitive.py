@@ -47,7 +47,7 @@ from lfd_torch.errors import (
 from lfd_torch.gmm import GMM, GaussianBank
 from lfd_torch.store import atomic_path
 from lfd_torch.store.checksum import DIGEST_KEY, compact_cpu, payload_digest, verify_digest
-from lfd_torch.utils import check_path, check_tensor, float_dtype, resolve_device
+from lfd_torch.utils import check_path, check_tensor, float_dtype, resolve_device, to_arguments
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -272,9 +272,10 @@ class StablePrimitive:
 
     # ------------------------------------------------------------------ conversion and persistence
     def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> StablePrimitive:
-        """A copy with every tensor cast to ``dtype`` (float32 or float64, or its name) and moved to ``device``."""
-        dtype = float_dtype(dtype, error=ShapeMismatchError)
-        f = dict(dtype=dtype or self.dtype, device=resolve_device(device) or self.device)
+        """A copy with every tensor cast to ``dtype`` (float32 or float64, or its name) and moved to ``device``
+        (``.to("cuda")``: a device as the only argument, as ``torch.Tensor.to``)."""
+        dtype, device = to_arguments(dtype, device, error=ShapeMismatchError)
+        f = dict(dtype=dtype or self.dtype, device=device or self.device)
         return dataclasses.replace(
             self,
             gmm=self.gmm.to(**f),

@@ -23,7 +23,7 @@ from torch import Tensor
 
 from lfd_torch.errors import InvalidGMMError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
 from lfd_torch.gmm.gaussian import gaussian_log_normalizer
-from lfd_torch.utils import check_generator, check_int, check_tensor
+from lfd_torch.utils import check_generator, check_int, check_tensor, to_arguments
 
 __all__ = ["GMM", "InvalidGMMError", "check_samples"]
 
@@ -250,7 +250,9 @@ class GMM:
 
     # ------------------------------------------------------------------ conversion and persistence
     def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> GMM:
-        """A copy with parameters cast to ``dtype`` and moved to ``device``."""
+        """A copy with parameters cast to ``dtype`` (float32 or float64, or its name) and moved to ``device``
+        (``.to("cuda")``: a device as the only argument, as ``torch.Tensor.to``)."""
+        dtype, device = to_arguments(dtype, device, error=ShapeMismatchError)
         f = dict(dtype=dtype or self.dtype, device=device or self.device)
         return GMM(self.weights.to(**f), self.means.to(**f), self.covariances.to(**f))
 

@@ -32,7 +32,7 @@ from lfd_torch.robot.controller import DLSVelocityMap, ImpedanceController, orie
 from lfd_torch.robot.demonstration import STAGE_NAMES, ScoopingDemonstration
 from lfd_torch.segmentation import Segmentation
 from lfd_torch.skills import Arrival, Decision, SkillEngine, SkillLibrary, SkillSettings
-from lfd_torch.utils import check_int, check_tensor
+from lfd_torch.utils import check_int, check_tensor, to_arguments
 
 __all__ = ["OrientationSchedule", "ScoopingTask", "learn_scooping", "ControlStep", "ScoopingController"]
 
@@ -79,6 +79,8 @@ class OrientationSchedule:
         self.progress_table = progress
 
     def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> "OrientationSchedule":
+        """A copy cast to ``dtype`` and moved to ``device`` (a device alone as the first argument: moved)."""
+        dtype, device = to_arguments(dtype, device)
         return OrientationSchedule(self.positions.to(dtype=dtype, device=device),
                                    self.rotations.to(dtype=dtype, device=device),
                                    self.steps.to(device=device), self.n_steps)  # fmt: skip
