@@ -14,7 +14,7 @@ Notation:
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,6 +25,7 @@ from torch import Tensor
 from lfd_torch.data.finite_difference import finite_difference
 from lfd_torch.utils import check_float, float_dtype, resolve_device, resolve_dtype
 from lfd_torch.errors import (
+    InvalidArgumentError,
     InvalidIndexError,
     NonFiniteError,
     NonIncreasingTimeError,
@@ -91,8 +92,8 @@ class Demos:
                 raise ShapeMismatchError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
         if self.lengths.is_floating_point() or self.lengths.is_complex() or self.lengths.dtype == torch.bool:
             raise ShapeMismatchError(f"lengths must be an integer tensor, got {self.lengths.dtype}")
-        if isinstance(self.names, (str, bytes)):
-            raise ShapeMismatchError(f"names must be a sequence of strings, got {self.names!r}")
+        if isinstance(self.names, (str, bytes)) or not isinstance(self.names, Iterable):
+            raise ShapeMismatchError(f"names must be a sequence of strings (() for none), got {self.names!r}")
         object.__setattr__(self, "names", tuple(self.names))
         object.__setattr__(self, "lengths", self.lengths.to(dtype=torch.long, device=self.positions.device))
         self._validate()
@@ -139,9 +140,25 @@ class Demos:
             velocities: B array-likes (T_i, d); None estimates them by finite differences (``velocity_scheme``).
             attractor: (d,) goal; None takes the mean of the demonstrations' end points.
             names: optional B labels.
+            device: a torch device or its name (``"auto"``: CUDA when present); None keeps the inputs' device.
+
+        ``times`` and ``dt`` exclude each other: passing both raises InvalidArgumentError (a ``dt`` would otherwise be
+        ignored silently).
+
+        Raises:
+            ShapeMismatchError, TooFewSamplesError, NonFiniteError, NonIncreasingTimeError: malformed sequences (the
+                message names the argument and the demonstration).
+            InvalidArgumentError: both ``times`` and ``dt``, or an unknown or unavailable ``device``.
         """
         if isinstance(positions, (str, bytes)) or not hasattr(positions, "__len__"):
             raise ShapeMismatchError(f"positions must be a list of (T_i, d) arrays, got {type(positions).__name__}")
+        for name, value in (("times", times), ("velocities", velocities)):
+            if value is not None and (isinstance(value, (str, bytes)) or not hasattr(value, "__len__")):
+                raise ShapeMismatchError(f"{name} must be a list of one array per demonstration, got "
+                                         f"{type(value).__name__} {value!r}")  # fmt: skip
+        if times is not None and dt is not None:
+            raise InvalidArgumentError(f"give times or dt, not both (dt={dt!r} would be ignored)")
+        device = resolve_device(device)
         dtype = float_dtype(dtype, allow_none=False, error=ShapeMismatchError)
         if len(positions) == 0:
             raise TooFewSamplesError("positions is empty: a demonstration set needs at least one demonstration")
@@ -404,7 +421,20 @@ class Demos:
 
     @staticmethod
     def concat(parts: Sequence[Demos]) -> Demos:
-        """Stack several sets that share dimension, dtype, device and attractor."""
+        """Stack several sets that share dimension, dtype, device and attractor.
+
+        ``parts`` is a list or tuple (or any iterable other than a mapping) of ``Demos``.
+
+        Raises:
+            InvalidArgumentError: ``parts`` is a mapping or not iterable, or holds something other than ``Demos``.
+            TooFewSamplesError: no part. ShapeMismatchError: parts that do not agree.
+        """
+        if isinstance(parts, (Mapping, str, bytes, Demos)) or not isinstance(parts, Iterable):
+            raise InvalidArgumentError(f"parts must be a list of Demos, got {type(parts).__name__}")
+        parts = list(parts)
+        for k, p in enumerate(parts):
+            if not isinstance(p, Demos):
+                raise InvalidArgumentError(f"parts[{k}] must be a Demos, got {type(p).__name__}")
         if not parts:
             raise TooFewSamplesError("nothing to concatenate")
         first = parts[0]

@@ -52,7 +52,7 @@ import math
 import os
 import struct
 import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -62,8 +62,15 @@ import torch
 from torch import Tensor
 
 from lfd_torch.data.demos import Demos
-from lfd_torch.errors import InvalidArgumentError, StoreError, TooFewSamplesError, UnknownNameError
-from lfd_torch.utils import check_cost, check_float, check_int, check_path, resolve_device, resolve_dtype
+from lfd_torch.errors import (
+    InvalidArgumentError,
+    NonFiniteError,
+    ShapeMismatchError,
+    StoreError,
+    TooFewSamplesError,
+    UnknownNameError,
+)
+from lfd_torch.utils import check_cost, check_float, check_int, check_path, real_array, resolve_device, resolve_dtype
 
 __all__ = [
     "MNIST_ENV",
@@ -678,7 +685,8 @@ def stroke_trajectory(
     above 170 (sharp returns), nothing between.
 
     Args:
-        path: (n, 2) pen positions, px (``extract_stroke``'s ``Stroke.path``); consecutive duplicates are dropped.
+        path: (n, 2) pen positions, px (``extract_stroke``'s ``Stroke.path``), finite, n >= 2 and not all at one
+            point; consecutive duplicates are dropped.
         n_points: >= 3 samples at equal time steps.
         cusp_angle: degrees in (0, 180), or None; cusp_window: > 0, path units.
     """
@@ -692,7 +700,13 @@ def stroke_trajectory(
     if cusp_angle is not None:
         check_float(cusp_angle, "cusp_angle", low=0.0, high=180.0, low_open=True, high_open=True)
     check_float(cusp_window, "cusp_window", low=0.0, low_open=True)
-    raw = np.asarray(path, dtype=np.float64)
+    raw = real_array(path, "path")
+    if raw.ndim != 2 or raw.shape[1] != 2:
+        raise ShapeMismatchError(f"path must have shape (n, 2) (pen positions, px), got {raw.shape}")
+    if raw.shape[0] < 2:
+        raise TooFewSamplesError(f"path has {raw.shape[0]} points; a pen path needs at least 2")
+    if not np.isfinite(raw).all():
+        raise NonFiniteError("path contains NaN or Inf")
     s_px = _arc(raw)
     p = (raw - raw[-1]) * mm_per_pixel
     s = s_px * mm_per_pixel
@@ -819,8 +833,9 @@ def mnist_demos(
 
     Raises:
         InvalidArgumentError: ``digit`` not in 0..9, ``n_demos`` < 1, ``offset`` < 0, ``pool`` < 1,
-            ``min_coverage`` or ``min_ink_share`` outside [0, 1], an index out of range or of another digit, or
-            fewer usable images than ``n_demos``.
+            ``min_coverage`` or ``min_ink_share`` outside [0, 1], an index that is not an integer, out of range or
+            of another digit, or fewer usable images than ``n_demos``.
+        UnknownNameError: a key of ``stroke`` that is not an :func:`extract_stroke` keyword (the message lists them).
         StoreError, UnknownNameError: from :func:`load_mnist`.
     """
     check_int(digit, "digit", low=0, high=9)
@@ -835,6 +850,16 @@ def mnist_demos(
     check_float(cusp_window, "cusp_window", low=0.0, low_open=True)
     if stroke is not None and not isinstance(stroke, Mapping):
         raise InvalidArgumentError(f"stroke must be a mapping of extract_stroke keyword arguments, got {stroke!r}")
+    stroke_keys = tuple(inspect.signature(extract_stroke).parameters)[1:]  # after the image
+    for key in stroke or {}:
+        if key not in stroke_keys:
+            raise UnknownNameError("stroke keyword (extract_stroke argument)", str(key), stroke_keys)
+    if indices is not None:
+        if isinstance(indices, (str, bytes)) or not isinstance(indices, Iterable):
+            raise InvalidArgumentError(f"indices must be a sequence of image numbers, got {indices!r}")
+        if isinstance(indices, (np.ndarray, Tensor)):
+            indices = indices.reshape(-1).tolist()  # int stays int, float and bool stay what they are (rejected)
+        indices = [check_int(i, "indices", low=0) for i in indices]  # 0.5 must not become image 0
     for name, value in (("min_coverage", min_coverage), ("min_ink_share", min_ink_share)):
         if not 0.0 <= value <= 1.0:
             raise InvalidArgumentError(f"{name} must lie in [0, 1], got {value}")

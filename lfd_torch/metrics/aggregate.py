@@ -44,7 +44,7 @@ def aggregate(
         ShapeMismatchError: ``values`` not 1-D or ``counts`` of another shape.
         TooFewSamplesError: no value, or counts summing to zero.
         NonFiniteError: a non-finite value with a positive weight.
-        InvalidArgumentError: negative counts.
+        InvalidArgumentError: negative counts, or (``kind="rms"``) a negative value with a positive weight.
         UnknownNameError: an unknown ``kind``.
     """
     if kind not in AGGREGATE_KINDS:
@@ -66,13 +66,17 @@ def aggregate(
         w = counts.to(values.dtype)
         if (w < 0).any():
             raise InvalidDemoError("counts must be non-negative", int(torch.nonzero(w < 0)[0]))
-        if not w.sum() > 0:
-            raise TooFewSamplesError("counts sum to zero")
         if not bool(torch.isfinite(w).all()):
             raise NonFiniteError("counts contain NaN or Inf")
+        if not w.sum() > 0:
+            raise TooFewSamplesError("counts sum to zero")
     bad = ~torch.isfinite(values) & (w > 0)
     if bad.any():
         raise NonFiniteError("values: a value with a positive weight is not finite", int(torch.nonzero(bad)[0]))
+    if kind == "rms" and ((values < 0) & (w > 0)).any():  # an RMS is >= 0: a negative one is not an RMS value
+        i = int(torch.nonzero((values < 0) & (w > 0))[0])
+        raise InvalidDemoError(f"values: kind='rms' pools root-mean-squares, which are >= 0; got "
+                               f"{float(values[i])}", i)  # fmt: skip
     x = values.square() if kind == "rms" else values
     zero = torch.zeros((), dtype=values.dtype, device=values.device)
     pooled = torch.where(w > 0, w * x, zero).sum() / w.sum()

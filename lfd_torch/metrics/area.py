@@ -21,8 +21,9 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import TooFewSamplesError, UnknownNameError
+from lfd_torch.errors import ShapeMismatchError, TooFewSamplesError, UnknownNameError
 from lfd_torch.metrics._checks import as_trajectories, check_finite, resolve_mask
+from lfd_torch.utils import check_tensor
 
 __all__ = ["SWEPT_AREA_REDUCTIONS", "quadrilateral_areas", "swept_area", "triangle_areas"]
 
@@ -43,7 +44,34 @@ def triangle_areas(u: Tensor, v: Tensor) -> Tensor:
 
     Returns:
         (...) triangle areas in squared data units.
+
+    Raises:
+        ShapeMismatchError: not float tensors, d < 2, or shapes that do not agree (broadcast, same d).
+        NonFiniteError: NaN or Inf in ``u`` or ``v``.
     """
+    _check_vertices(("u", u), ("v", v))
+    return _triangle_areas(u, v)
+
+
+def _check_vertices(*named: tuple[str, Tensor]) -> None:
+    """(..., d) float tensors without NaN/Inf, d >= 2 and the same in all, broadcastable batch shapes."""
+    for name, x in named:
+        check_tensor(x, name, min_ndim=1, bounded=False, shape_hint="(..., d)")
+        if x.shape[-1] < 2:
+            raise ShapeMismatchError(f"{name} has d = {x.shape[-1]}; areas need d >= 2 (shape {tuple(x.shape)})")
+    (first, x0), *rest = named
+    for name, x in rest:
+        if x.shape[-1] != x0.shape[-1]:
+            raise ShapeMismatchError(f"{name} has d = {x.shape[-1]}, {first} has d = {x0.shape[-1]}")
+    try:
+        torch.broadcast_shapes(*(x.shape for _, x in named))
+    except RuntimeError:
+        raise ShapeMismatchError(f"shapes of {', '.join(n for n, _ in named)} do not broadcast: "
+                                 f"{[tuple(x.shape) for _, x in named]}") from None  # fmt: skip
+
+
+def _triangle_areas(u: Tensor, v: Tensor) -> Tensor:
+    """:func:`triangle_areas` without its argument checks."""
     d = u.shape[-1]
     if d == 2:
         return 0.5 * (u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]).abs()
@@ -116,11 +144,21 @@ def quadrilateral_areas(p0: Tensor, p1: Tensor, p2: Tensor, p3: Tensor) -> Tenso
 
     Returns:
         (...) areas in squared data units.
+
+    Raises:
+        ShapeMismatchError: not float tensors, d < 2, or shapes that do not agree (broadcast, same d).
+        NonFiniteError: NaN or Inf in a vertex.
     """
+    _check_vertices(("p0", p0), ("p1", p1), ("p2", p2), ("p3", p3))
+    return _quadrilateral_areas(p0, p1, p2, p3)
+
+
+def _quadrilateral_areas(p0: Tensor, p1: Tensor, p2: Tensor, p3: Tensor) -> Tensor:
+    """:func:`quadrilateral_areas` without its argument checks."""
     if p0.shape[-1] == 2:
         return _region_areas_2d(p0, p1, p2, p3)
     e2 = p2 - p0
-    return triangle_areas(p1 - p0, e2) + triangle_areas(e2, p3 - p0)
+    return _triangle_areas(p1 - p0, e2) + _triangle_areas(e2, p3 - p0)
 
 
 def swept_area(
@@ -172,7 +210,7 @@ def swept_area(
     keep = valid.unsqueeze(-1)
     x = torch.where(keep, x, zero)
     x_ref = torch.where(keep, x_ref, zero)
-    areas = quadrilateral_areas(x_ref[:, :-1], x_ref[:, 1:], x[:, 1:], x[:, :-1])  # (B, T-1)
+    areas = _quadrilateral_areas(x_ref[:, :-1], x_ref[:, 1:], x[:, 1:], x[:, :-1])  # (B, T-1), checked above
     total = torch.where(quad_valid, areas, zero).sum(1)
     if reduction == "sum":
         return total

@@ -16,8 +16,9 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import InvalidArgumentError, UnknownNameError
+from lfd_torch.errors import UnknownNameError
 from lfd_torch.metrics._checks import as_trajectories, check_finite, resolve_mask
+from lfd_torch.utils import check_float
 
 __all__ = ["VELOCITY_ERROR_KINDS", "velocity_error", "cosine_dissimilarity"]
 
@@ -104,8 +105,7 @@ def cosine_dissimilarity(
         ShapeMismatchError, NonFiniteError, TooFewSamplesError: as for :func:`velocity_error`.
         InvalidArgumentError: a negative or non-finite ``eps``.
     """
-    if not 0.0 <= eps < float("inf"):
-        raise InvalidArgumentError(f"eps must be finite and >= 0, got {eps}")
+    eps = check_float(eps, "eps", low=0.0)
     pred, ref = as_trajectories(("pred_x_dot", pred_x_dot), ("ref_x_dot", ref_x_dot))
     B, T, _ = pred.shape
     valid = resolve_mask(mask, lengths, B, T, pred.device, min_samples=1)

@@ -47,7 +47,8 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError
+from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.utils import check_tensor
 
 __all__ = [
     "VelocityMixture",
@@ -103,8 +104,12 @@ def velocity_mixture(primitive: Any, x: Tensor, *, velocity_covariances: Tensor 
     Raises:
         ShapeMismatchError: ``x`` or ``velocity_covariances`` of the wrong shape, dtype or device.
         NonFiniteError: NaN or Inf in ``x``.
-        InvalidArgumentError: the primitive has no velocity covariances and none are given.
+        InvalidArgumentError: ``primitive`` is not a primitive, or it has no velocity covariances and none are given.
     """
+    if not all(isinstance(getattr(primitive, a, None), Tensor) for a in ("attractor", "A")) \
+            or not hasattr(primitive, "gmm"):  # fmt: skip
+        raise InvalidArgumentError(f"primitive must be a StablePrimitive (with gmm, A and attractor), got "
+                                   f"{type(primitive).__name__}")  # fmt: skip
     _check_positions(primitive, x)
     K, d = primitive.A.shape[0], primitive.A.shape[-1]
     S = velocity_covariances
@@ -133,8 +138,18 @@ def pair_factors(covariances: Tensor) -> tuple[Tensor, Tensor]:
         (..., K, K, d, d) inverse lower Cholesky factors of S_i + S_j and (..., K, K) half log-determinants.
 
     Raises:
+        ShapeMismatchError: ``covariances`` not a float (..., K, d, d) tensor.
+        NonFiniteError: NaN or Inf in ``covariances``.
         InvalidArgumentError: some S_i + S_j is not positive definite.
     """
+    check_tensor(covariances, "covariances", min_ndim=3, bounded=False, shape_hint="(..., K, d, d)")
+    if covariances.shape[-1] != covariances.shape[-2]:
+        raise ShapeMismatchError(f"covariances must be square (..., K, d, d), got shape {tuple(covariances.shape)}")
+    return _pair_factors(covariances)
+
+
+def _pair_factors(covariances: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`pair_factors` without its argument checks."""
     d = covariances.shape[-1]
     S_pair = covariances.unsqueeze(-3) + covariances.unsqueeze(-4)  # (..., K, K, d, d)
     S_pair = 0.5 * (S_pair + S_pair.transpose(-2, -1))
@@ -160,10 +175,30 @@ def pairwise_log_overlap(
         (..., K, K) symmetric tensor.
 
     Raises:
+        ShapeMismatchError: ``means`` not a float (..., K, d) tensor, or d not that of the covariances.
+        NonFiniteError: NaN or Inf in ``means`` or ``covariances``.
         InvalidArgumentError: some S_i + S_j is not positive definite.
     """
+    check_tensor(means, "means", min_ndim=2, bounded=False, shape_hint="(..., K, d)")
+    if factors is None:
+        check_tensor(covariances, "covariances", min_ndim=3, bounded=False, shape_hint="(..., K, d, d)")
+        d_cov = covariances.shape[-1]
+    elif not (isinstance(factors, tuple) and len(factors) == 2 and all(isinstance(t, Tensor) for t in factors)):
+        raise ShapeMismatchError(f"factors must be the (L_inv, half_log_det) tensors of pair_factors, got "
+                                 f"{type(factors).__name__}")  # fmt: skip
+    else:
+        d_cov = factors[0].shape[-1]
+    if means.shape[-1] != d_cov:
+        raise ShapeMismatchError(f"means have d = {means.shape[-1]}, the covariances d = {d_cov}")
+    return _pairwise_log_overlap(means, covariances, factors=factors)
+
+
+def _pairwise_log_overlap(
+    means: Tensor, covariances: Tensor | None = None, *, factors: tuple[Tensor, Tensor] | None = None
+) -> Tensor:
+    """:func:`pairwise_log_overlap` without its argument checks."""
     d = means.shape[-1]
-    L_inv, half_log_det = pair_factors(covariances) if factors is None else factors
+    L_inv, half_log_det = _pair_factors(covariances) if factors is None else factors
     diff = means.unsqueeze(-2) - means.unsqueeze(-3)  # (..., K, K, d): mu_i - mu_j
     z = (L_inv @ diff.unsqueeze(-1)).squeeze(-1)
     return -0.5 * (z * z).sum(-1) - half_log_det - 0.5 * d * math.log(2.0 * math.pi)
@@ -185,6 +220,8 @@ def mixture_renyi_entropy(
 
     Raises:
         ShapeMismatchError: inconsistent shapes.
+        TooFewSamplesError: no component (K = 0).
+        NonFiniteError: NaN or +inf in ``log_weights``, NaN or Inf in ``means`` or ``covariances``.
         InvalidArgumentError: some S_i + S_j is not positive definite.
     """
     for name, t in (("log_weights", log_weights), ("means", means), ("covariances", covariances)):
@@ -197,7 +234,22 @@ def mixture_renyi_entropy(
     K, d = means.shape[-2:]
     if covariances.ndim < 3 or tuple(covariances.shape[-3:]) != (K, d, d):
         raise ShapeMismatchError(f"covariances must have shape (..., {K}, {d}, {d}), got {tuple(covariances.shape)}")
-    log_overlap = pairwise_log_overlap(means, covariances, factors=factors)  # (..., K, K)
+    if K == 0:
+        raise TooFewSamplesError("means has K = 0 components; a mixture needs at least one")
+    check_tensor(log_weights, "log_weights", finite=False)
+    if bool((torch.isnan(log_weights) | (log_weights == math.inf)).any()):
+        raise NonFiniteError("log_weights contains NaN or +inf (-inf, a zero weight, is allowed)")
+    check_tensor(means, "means", bounded=False)
+    if factors is None:
+        check_tensor(covariances, "covariances", bounded=False)
+    return _mixture_renyi_entropy(log_weights, means, covariances, factors=factors)
+
+
+def _mixture_renyi_entropy(
+    log_weights: Tensor, means: Tensor, covariances: Tensor, *, factors: tuple[Tensor, Tensor] | None = None
+) -> Tensor:
+    """:func:`mixture_renyi_entropy` without its argument checks (inputs from a checked :func:`velocity_mixture`)."""
+    log_overlap = _pairwise_log_overlap(means, covariances, factors=factors)  # (..., K, K)
     terms = log_weights.unsqueeze(-1) + log_weights.unsqueeze(-2) + log_overlap
     return -torch.logsumexp(terms.flatten(-2), dim=-1)
 
@@ -217,8 +269,8 @@ def renyi_entropy(primitive: Any, x: Tensor, *, velocity_covariances: Tensor | N
     Raises:
         ShapeMismatchError, NonFiniteError, InvalidArgumentError: see :func:`velocity_mixture`.
     """
-    mix = velocity_mixture(primitive, x, velocity_covariances=velocity_covariances)
-    return mixture_renyi_entropy(mix.log_weights, mix.means, mix.covariances)
+    mix = velocity_mixture(primitive, x, velocity_covariances=velocity_covariances)  # checks x and the primitive
+    return _mixture_renyi_entropy(mix.log_weights, mix.means, mix.covariances)
 
 
 def reference_entropy(

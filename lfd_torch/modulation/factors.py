@@ -24,7 +24,7 @@ import math
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import InvalidArgumentError
+from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError
 
 __all__ = ["check_lambda_limit", "large_scale_factor", "large_scale_gain", "small_scale_factor"]
 
@@ -53,8 +53,41 @@ def large_scale_gain(log_p_own: Tensor, log_p_other: Tensor, lambda_limit: float
 
     Returns:
         (...) gains in [1, lambda_limit].
+
+    Raises:
+        InvalidArgumentError: ``lambda_limit`` < 1, or a density that is not a real floating tensor.
+        ShapeMismatchError: shapes that do not broadcast, or tensors on different devices.
+        NonFiniteError: NaN in a log density (-inf and +inf are allowed).
     """
     limit = check_lambda_limit(lambda_limit)
+    _check_log_densities(log_p_own=log_p_own, log_p_other=log_p_other)
+    return large_scale_gain_unchecked(log_p_own, log_p_other, limit)
+
+
+def _check_log_densities(**named: object) -> None:
+    """Each argument a real floating tensor without NaN (+-inf allowed), all broadcastable, on one device."""
+    shapes: list[torch.Size] = []
+    first: tuple[str, Tensor] | None = None
+    for name, t in named.items():
+        if not isinstance(t, Tensor) or t.is_complex() or not t.is_floating_point():
+            raise InvalidArgumentError(f"{name} must be a real floating tensor, got "
+                                       f"{getattr(t, 'dtype', type(t).__name__)}")  # fmt: skip
+        if first is not None and t.device != first[1].device:
+            raise ShapeMismatchError(f"{name} is on {t.device}, {first[0]} on {first[1].device}")
+        try:
+            torch.broadcast_shapes(*shapes, t.shape)
+        except RuntimeError:
+            before = list(named)[: len(shapes)]
+            raise ShapeMismatchError(f"{name} of shape {tuple(t.shape)} does not broadcast with {', '.join(before)} "
+                                     f"of shape {tuple(torch.broadcast_shapes(*shapes))}") from None  # fmt: skip
+        if bool(torch.isnan(t).any()):
+            raise NonFiniteError(f"{name} contains NaN")
+        shapes.append(t.shape)
+        first = first or (name, t)
+
+
+def large_scale_gain_unchecked(log_p_own: Tensor, log_p_other: Tensor, limit: float) -> Tensor:
+    """:func:`large_scale_gain` without its argument checks (a checked ``limit`` as a float), for the hot path."""
     log_ratio = log_p_other - log_p_own
     log_ratio = torch.where(torch.isnan(log_ratio), torch.zeros_like(log_ratio), log_ratio)  # -inf - -inf
     return torch.exp(log_ratio.clamp(min=0.0, max=math.log(limit)))
@@ -71,8 +104,13 @@ def large_scale_factor(log_p_own: Tensor, log_p_other: Tensor, c: Tensor, lambda
 
     Returns:
         (...) signed factor; |lambda_ls| in [1, lambda_limit] where c != 0.
+
+    Raises:
+        InvalidArgumentError, ShapeMismatchError, NonFiniteError: as for :func:`large_scale_gain` (NaN in ``c`` too).
     """
-    return -torch.sign(c) * large_scale_gain(log_p_own, log_p_other, lambda_limit)
+    limit = check_lambda_limit(lambda_limit)
+    _check_log_densities(log_p_own=log_p_own, log_p_other=log_p_other, c=c)
+    return -torch.sign(c) * large_scale_gain_unchecked(log_p_own, log_p_other, limit)
 
 
 def small_scale_factor(h2: Tensor, h2_ref: Tensor | float) -> Tensor:

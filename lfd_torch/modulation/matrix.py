@@ -70,6 +70,47 @@ def goal_direction_unchecked(x: Tensor, attractor: Tensor, *, dim: int = -1) -> 
     return GoalDirection(unit, r)
 
 
+def _check_vectors(f: Tensor, unit: Tensor, dim: int = -1) -> None:
+    """f and unit: float tensors without NaN/Inf, of one vector length along ``dim``, broadcastable."""
+    from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
+    from lfd_torch.utils import check_int, check_tensor
+
+    check_tensor(f, "f", min_ndim=1, bounded=False, shape_hint="(..., d)")
+    check_tensor(unit, "unit", min_ndim=1, bounded=False, shape_hint="(..., d)")
+    check_int(dim, "dim")
+    if not (-f.ndim <= dim < f.ndim and -unit.ndim <= dim < unit.ndim):
+        raise InvalidArgumentError(f"dim = {dim} is not an axis of f {tuple(f.shape)} and unit {tuple(unit.shape)}")
+    if f.shape[dim] != unit.shape[dim]:
+        raise ShapeMismatchError(f"unit has d = {unit.shape[dim]}, f has d = {f.shape[dim]} (shapes "
+                                 f"{tuple(unit.shape)} and {tuple(f.shape)})")  # fmt: skip
+    try:
+        torch.broadcast_shapes(f.shape, unit.shape)
+    except RuntimeError:
+        raise ShapeMismatchError(f"unit of shape {tuple(unit.shape)} does not broadcast with f of shape "
+                                 f"{tuple(f.shape)}") from None  # fmt: skip
+
+
+def _check_eigenvalue(value: Tensor | float, name: str, batch: tuple[int, ...], like: Tensor) -> None:
+    """An eigenvalue ``name``: a finite number, or a real tensor without NaN/Inf broadcastable to ``batch``."""
+    from lfd_torch.errors import NonFiniteError, ShapeMismatchError
+    from lfd_torch.utils import check_float
+
+    if not isinstance(value, Tensor):
+        check_float(value, name)
+        return
+    if value.is_complex() or value.dtype == torch.bool:
+        raise ShapeMismatchError(f"{name} must be a real tensor or a number, got {value.dtype}")
+    if value.device != like.device:
+        raise ShapeMismatchError(f"{name} is on {value.device}, the vectors on {like.device}")
+    try:
+        torch.broadcast_shapes(value.shape, batch)
+    except RuntimeError:
+        raise ShapeMismatchError(f"{name} of shape {tuple(value.shape)} does not broadcast to the batch shape "
+                                 f"{tuple(batch)}") from None  # fmt: skip
+    if not bool(torch.isfinite(value).all()):
+        raise NonFiniteError(f"{name} contains NaN or Inf")
+
+
 def radial_component(f: Tensor, unit: Tensor, *, dim: int = -1) -> Tensor:
     """c = e_g^T f = [W^-1 f]_1, the component of ``f`` along e_g (units/s).
 
@@ -80,7 +121,17 @@ def radial_component(f: Tensor, unit: Tensor, *, dim: int = -1) -> Tensor:
 
     Returns:
         (...) tensor.
+
+    Raises:
+        ShapeMismatchError: not float tensors, or d (or the batch shapes) that do not agree.
+        NonFiniteError: NaN or Inf in ``f`` or ``unit``.
     """
+    _check_vectors(f, unit, dim)
+    return radial_component_unchecked(f, unit, dim=dim)
+
+
+def radial_component_unchecked(f: Tensor, unit: Tensor, *, dim: int = -1) -> Tensor:
+    """:func:`radial_component` without its argument checks (the modulation's hot path)."""
     return (f * unit).sum(dim)
 
 
@@ -95,10 +146,18 @@ def modulate(f: Tensor, unit: Tensor, d1: Tensor | float, d: Tensor | float) -> 
 
     Returns:
         (..., d) modulated velocities, dtype and device of ``f``.
+
+    Raises:
+        ShapeMismatchError: not float tensors, or d (or the batch shapes) that do not agree.
+        NonFiniteError, InvalidArgumentError: NaN or Inf in ``f``, ``unit``, ``d1`` or ``d`` (naming it).
     """
+    _check_vectors(f, unit)
+    batch = torch.broadcast_shapes(f.shape, unit.shape)[:-1]
+    _check_eigenvalue(d1, "d1", batch, f)
+    _check_eigenvalue(d, "d", batch, f)
     d1 = torch.as_tensor(d1, dtype=f.dtype, device=f.device)
     d = torch.as_tensor(d, dtype=f.dtype, device=f.device)
-    c = radial_component(f, unit)
+    c = radial_component_unchecked(f, unit)
     return d.unsqueeze(-1) * f + ((d1 - d) * c).unsqueeze(-1) * unit
 
 
@@ -112,7 +171,16 @@ def modulation_matrix(unit: Tensor, d1: Tensor | float, d: Tensor | float) -> Te
 
     Returns:
         (..., d, d) symmetric matrices.
+
+    Raises:
+        ShapeMismatchError: ``unit`` not a float (..., d) tensor, or ``d1`` / ``d`` not broadcastable to its batch.
+        NonFiniteError, InvalidArgumentError: NaN or Inf in ``unit``, ``d1`` or ``d`` (naming it).
     """
+    from lfd_torch.utils import check_tensor
+
+    check_tensor(unit, "unit", min_ndim=1, bounded=False, shape_hint="(..., d)")
+    _check_eigenvalue(d1, "d1", unit.shape[:-1], unit)
+    _check_eigenvalue(d, "d", unit.shape[:-1], unit)
     d1 = torch.as_tensor(d1, dtype=unit.dtype, device=unit.device)
     d = torch.as_tensor(d, dtype=unit.dtype, device=unit.device)
     n = unit.shape[-1]

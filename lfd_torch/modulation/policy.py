@@ -67,8 +67,8 @@ from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError, UnknownNameError
 from lfd_torch.modulation.entropy import reference_entropy, renyi_entropy
-from lfd_torch.modulation.factors import check_lambda_limit, large_scale_gain, small_scale_factor
-from lfd_torch.modulation.matrix import goal_direction_unchecked, radial_component
+from lfd_torch.modulation.factors import check_lambda_limit, large_scale_gain_unchecked, small_scale_factor
+from lfd_torch.modulation.matrix import goal_direction_unchecked, radial_component_unchecked
 
 __all__ = [
     "DEFAULT_LAMBDA_LIMIT",
@@ -256,14 +256,14 @@ def modulated_velocity_unchecked(
         return ModulationResult(f.clone(), branch)
 
     unit, r = goal_direction_unchecked(x, attractor, dim=dim)
-    c = radial_component(f, unit, dim=dim)
+    c = radial_component_unchecked(f, unit, dim=dim)
     norm_f = torch.linalg.vector_norm(f, dim=dim) if dim == x.ndim - 1 else (f * f).sum(dim).sqrt()
     a = torch.maximum(c.abs(), radial_floor * norm_f)  # floored radial magnitude
     out = f.clone()
 
     if mode in ("large", "full"):
         outside = log_p_own < log_p_other
-        s = large_scale_gain(log_p_own, log_p_other, lambda_limit)
+        s = large_scale_gain_unchecked(log_p_own, log_p_other, lambda_limit)
     else:
         outside = torch.zeros(batch, dtype=torch.bool, device=x.device)
     if mode in ("small", "full"):
@@ -296,20 +296,39 @@ def modulated_velocity_single(
 ) -> tuple[list[float], Branch]:
     """:func:`modulated_velocity_unchecked` for one sample in Python floats, e = x - g and f as lists of d floats:
     the same formulas in the same order, for the single-state control tick (a few d-vectors, where a tensor
-    kernel per operation costs more than the arithmetic). Returns the velocity (list) and the branch."""
+    kernel per operation costs more than the arithmetic). Returns the velocity (list) and the branch.
+
+    Its checks cost a few float comparisons (it runs once per control tick): an unknown ``mode``
+    (UnknownNameError), ``e`` and ``f`` of different lengths (ShapeMismatchError), NaN or Inf in ``e`` or ``f``
+    or NaN in a density or entropy the mode uses (NonFiniteError), each naming the argument. None stands for a
+    value the branch taken does not need (e.g. ``h2`` off the small-scale branch)."""
+    if mode not in MODULATION_MODES:
+        _check_mode(mode)
+    if len(e) != len(f):
+        raise ShapeMismatchError(f"f has {len(f)} entries, e = x - g has {len(e)}")
+    r = math.sqrt(sum(v * v for v in e))
+    norm_f = math.sqrt(sum(v * v for v in f))
+    if not (math.isfinite(r) and math.isfinite(norm_f)):  # NaN and Inf propagate into the sums of squares
+        name = "e" if not math.isfinite(r) else "f"
+        raise NonFiniteError(f"{name} contains NaN, Inf or a magnitude whose square overflows")
     if mode == "none":
         return list(f), Branch.UNMODULATED
-    r = math.sqrt(sum(v * v for v in e))
+    large, small = mode in ("large", "full"), mode in ("small", "full")
+    if (large and (log_p_own != log_p_own or log_p_other != log_p_other)
+            or small and (h2 != h2 or h2_ref != h2_ref)):  # NaN where the mode uses it (None: not needed here)
+        used = ((("log_p_own", log_p_own), ("log_p_other", log_p_other)) if large else ()) + \
+            ((("h2", h2), ("h2_ref", h2_ref)) if small else ())  # fmt: skip
+        raise NonFiniteError(f"{next(n for n, v in used if v != v)} is NaN")
     if r == 0:
         return [0.0] * len(e), Branch.AT_GOAL
     unit = [v / r for v in e]
     c = sum(a * b for a, b in zip(f, unit))
-    a = max(abs(c), radial_floor * math.sqrt(sum(v * v for v in f)))
-    if mode in ("large", "full") and log_p_own < log_p_other:
+    a = max(abs(c), radial_floor * norm_f)
+    if large and log_p_own < log_p_other:
         log_ratio = log_p_other - log_p_own
         s = math.exp(min(max(0.0 if math.isnan(log_ratio) else log_ratio, 0.0), math.log(lambda_limit)))
         return [-(a * s) * u for u in unit], Branch.LARGE_SCALE
-    if mode in ("small", "full") and h2 > h2_ref:
+    if small and h2 > h2_ref:
         lam_ss = math.exp(h2_ref - h2)
         return [lam_ss * v - a * u for v, u in zip(f, unit)], Branch.SMALL_SCALE
     return list(f), Branch.UNMODULATED
@@ -446,6 +465,10 @@ class Modulation:
         """
         if self.uses_subtask_densities and log_p_own is None:
             raise InvalidArgumentError(f"log_p_own is required in modulation mode {self.mode!r}")
+        for name, fn in (("log_p_own", log_p_own), ("log_p_other", log_p_other)):
+            if fn is not None and not callable(fn):
+                raise InvalidArgumentError(f"{name} must be a callable (N, d) -> (N,) giving log densities, got "
+                                           f"{type(fn).__name__} {fn!r}")  # fmt: skip
 
         def _field(x: Tensor) -> Tensor:
             own = log_p_own(x) if log_p_own is not None else None

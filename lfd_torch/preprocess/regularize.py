@@ -244,8 +244,15 @@ def subsample(demos: Demos, step: int, *, keep_last: bool = True) -> Demos:
 
 
 def dimension_shares(demos: Demos) -> Tensor:
-    """(d,) share of each dimension in the total variance of all valid positions (sums to 1)."""
+    """(d,) share of each dimension in the total variance of all valid positions (sums to 1).
+
+    The positions are first scaled by a power of two (exact) that brings their largest magnitude to [0.5, 1): the
+    shares do not change, and the variances neither overflow (|x| ~ 1e200) nor underflow (|x| ~ 1e-200).
+    """
     x, _, _ = _check_demos(demos).samples()
+    e = torch.frexp(x.abs().max()).exponent.to(torch.int64)  # 0 for all-zero positions
+    h = torch.div(e, 2, rounding_mode="floor")
+    x = torch.ldexp(torch.ldexp(x, -h), h - e)  # two halves: no 2^k factor under- or overflows itself
     var = x.var(dim=0, unbiased=False)
     total = var.sum()
     if total <= 0:

@@ -208,7 +208,7 @@ from lfd_torch.segmentation.blocks import BlockMeans, block_means
 from lfd_torch.segmentation.dwell import dwell_covariate
 from lfd_torch.segmentation.field import field_log_likelihood_additive, field_observations
 from lfd_torch.segmentation.sampler import BetaProcessHMMSampler, SamplerResult
-from lfd_torch.utils import FLOAT_DTYPES
+from lfd_torch.utils import FLOAT_DTYPES, check_path
 
 __all__ = [
     "Segmentation",
@@ -474,7 +474,12 @@ class Segmentation:
 
     @classmethod
     def from_state_dict(cls, state: dict[str, Any]) -> Segmentation:
-        """Inverse of :meth:`state_dict`."""
+        """Inverse of :meth:`state_dict`.
+
+        Raises:
+            StoreError: another schema, a missing key or malformed endpoints.
+            NonFiniteError: NaN or Inf in a float tensor (attractors, space_*, endpoints), naming the key.
+        """
         if not isinstance(state, dict) or state.get("schema_version") != SCHEMA_VERSION:
             got = state.get("schema_version") if isinstance(state, dict) else type(state).__name__
             raise StoreError(f"segmentation schema {got!r}, expected {SCHEMA_VERSION}")
@@ -483,6 +488,10 @@ class Segmentation:
                                      and ends.shape[:2] == (len(state.get("labels", ())), 2)):
             raise StoreError(f"segmentation state: endpoints must be an (N, 2, d) float tensor, got "
                              f"{getattr(ends, 'shape', type(ends).__name__)}")
+        for key in ("attractors", "space_mean", "space_covariance", "space_weights", "endpoints"):
+            value = state.get(key)  # a NaN here would make every membership test False, silently
+            if isinstance(value, Tensor) and value.is_floating_point() and not bool(torch.isfinite(value).all()):
+                raise NonFiniteError(f"segmentation state: {key} contains NaN or Inf")
         try:
             return cls(
                 labels=tuple(state["labels"]), pieces=tuple(state["pieces"]), attractors=state["attractors"],
@@ -496,15 +505,20 @@ class Segmentation:
 
     def save(self, path: str | Path) -> Path:
         """Write :meth:`state_dict` atomically with ``torch.save``, with the SHA-256 of its content
-        (:func:`lfd_torch.store.checksum.payload_digest`) checked by :meth:`load`."""
+        (:func:`lfd_torch.store.checksum.payload_digest`) checked by :meth:`load`.
+
+        Raises:
+            StoreError: ``path`` is not a str or os.PathLike (naming it), or writing failed.
+        """
         from lfd_torch.store import atomic_path
         from lfd_torch.store.checksum import DIGEST_KEY, payload_digest
 
+        path = check_path(path, "path", error=StoreError)
         state = self.state_dict()
         state[DIGEST_KEY] = payload_digest(state)
         with atomic_path(path) as tmp:
             torch.save(state, tmp)
-        return Path(path)
+        return path
 
     @classmethod
     def load(cls, path: str | Path) -> Segmentation:
@@ -520,7 +534,7 @@ class Segmentation:
         verify_digest(state, f"segmentation file {str(path)!r}")
         try:
             return cls.from_state_dict(state)
-        except StoreError as exc:
+        except (StoreError, NonFiniteError) as exc:  # a file holding NaN is a damaged file to the caller
             raise StoreError(f"{str(path)!r}: {exc}") from exc
 
     def table(self) -> list[dict[str, Any]]:

@@ -318,10 +318,16 @@ class SkillTree:
 
     def render(self, path: str | Path) -> list[Path]:
         """Write the tree to ``path`` (suffix replaced): ``.txt`` ASCII always, ``.dot`` source, and ``.png`` when
-        graphviz's ``dot`` is installed. Returns the files written."""
-        from lfd_torch.store import atomic_path
+        graphviz's ``dot`` is installed. Returns the files written.
 
-        base = Path(path)
+        Raises:
+            StoreError: ``path`` is not a str or os.PathLike (naming it), or writing failed.
+        """
+        from lfd_torch.errors import StoreError
+        from lfd_torch.store import atomic_path
+        from lfd_torch.utils import check_path
+
+        base = check_path(path, "path", error=StoreError)
         written = []
         with atomic_path(base.with_suffix(".txt")) as tmp:
             tmp.write_text(self.ascii())
