@@ -95,6 +95,9 @@ def test_indexing_and_split(generator):
         demos[4]
     with pytest.raises(TooFewSamplesError):
         demos.split([0, 1, 2, 3])
+    for empty in ([], ()):  # numpy reads [] as float64: the message said "integers or booleans"
+        with pytest.raises(IndexError, match="selects no demonstration"):
+            demos.split(empty)
     both = Demos.concat([train, test])
     assert both.names == demos.names and torch.equal(both.positions, demos.positions)
 

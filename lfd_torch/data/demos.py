@@ -372,6 +372,8 @@ class Demos:
             idx = torch.as_tensor(np.asarray(index) if not isinstance(index, Tensor) else index, device=self.device)
         except (TypeError, ValueError) as exc:
             raise InvalidIndexError(f"index must be an int, a slice, a sequence of ints or a bool mask, got {index!r}") from exc
+        if idx.numel() == 0 and idx.dtype != torch.bool:  # np.asarray([]) is float64: say what is wrong
+            raise InvalidIndexError(f"index {index!r} selects no demonstration")
         if idx.dtype != torch.bool and (idx.is_floating_point() or idx.is_complex()):
             raise InvalidIndexError(f"index must hold integers or booleans, got {idx.dtype}")
         if idx.dtype == torch.bool:
