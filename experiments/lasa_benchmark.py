@@ -47,13 +47,13 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from lfd_torch.data import LASA_NAMES, Demos, load_lasa
-from lfd_torch.errors import LfdError
+from lfd_torch.errors import InvalidArgumentError, LfdError
 from lfd_torch.metrics import cosine_dissimilarity, dtw_distance, swept_area, velocity_error
 from lfd_torch.modulation import Modulation
 from lfd_torch.preprocess import subsample
 from lfd_torch.skills import SkillEngine, SkillLibrary
 from lfd_torch.store import atomic_write, finished_part, prepare_job, staged_results, write_table
-from lfd_torch.utils import derive_seed
+from lfd_torch.utils import check_int, derive_seed
 from lfd_torch.viz import violin_grid
 
 log = logging.getLogger(__name__)
@@ -94,8 +94,7 @@ def fitter(primitive_cfg: DictConfig) -> Any:
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
-    if isinstance(cfg.fold, bool) or not isinstance(cfg.fold, int):
-        raise TypeError(f"fold must be an integer, got {cfg.fold!r}")
+    check_int(cfg.fold, "fold", low=0)
     job = prepare_job(cfg)
     out_dir, manifest = job.out_dir, job.manifest
     shapes = list(LASA_NAMES) if cfg.shapes == "all" else [str(s) for s in cfg.shapes]
@@ -111,6 +110,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     for shape in tqdm(shapes, desc="lasa_benchmark", unit="shape", disable=not cfg.progress):
         demos = subsample(load_lasa(shape), int(cfg.subsample), keep_last=False)
         fold = int(cfg.fold)
+        if fold >= demos.n_demos:
+            raise InvalidArgumentError(f"fold (the training demonstration) must be in 0..{demos.n_demos - 1} for "
+                                       f"{shape}, got {fold}")  # fmt: skip
         test_idx = [i for i in range(demos.n_demos) if i != fold]
         splits = {"train": ([fold], demos[[fold]]), "test": (test_idx, demos[test_idx])}
         for seg_name in cfg.segmentations:

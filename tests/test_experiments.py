@@ -12,6 +12,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from lfd_torch.errors import InvalidArgumentError
 from lfd_torch.store import KEY_COLUMNS, collect
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -94,6 +95,13 @@ def test_lasa_benchmark_one_training_demo_rows_and_shared_libraries(tmp_path, mo
     assert set(train.trajectory) == {2} and set(table[table.split == "test"].trajectory) == {0, 1, 3, 4, 5, 6}
     assert table[["E1", "E2", "E3", "DTWD", "final_error"]].notna().all().all() and table.reached.all()
     assert len(result["table"]) == len(table)
+    for fold, match in ((9, "0..6"), (-1, "fold"), ("a", "fold")):  # it was an index error naming no argument
+        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+            bad = compose("lasa_benchmark", overrides=["shapes=[Angle]", f"fold={fold}", "segmentations=[none]",
+                                                       "primitives=[lpvds]", f"+out_dir={tmp_path / 'bad'}"])
+        with pytest.raises(InvalidArgumentError, match=match):
+            lasa_benchmark.run(bad)
+        assert not (tmp_path / "bad" / "results.parquet").exists()
 
 
 @pytest.mark.slow
