@@ -213,6 +213,8 @@ class RolloutResult:
             (B, Q, d) positions.
         """
         B = self.n_starts
+        if times.is_complex() if isinstance(times, Tensor) else np.iscomplexobj(times):  # as_tensor would drop it
+            raise ShapeMismatchError("times must be real numbers (s), got complex values")
         try:
             t = torch.as_tensor(times, dtype=self.positions.dtype, device=self.positions.device)
         except (TypeError, ValueError, RuntimeError) as exc:
@@ -225,6 +227,7 @@ class RolloutResult:
         if not bool(torch.isfinite(t).all()) or bool((t < 0).any()):
             raise NonFiniteError("times must be finite and >= 0")
         last = (self.lengths - 1).unsqueeze(1).to(t.device)
+        t = t.clamp(max=float(self.positions.shape[1]) * self.dt)  # past the end: the final state (no int overflow)
         k = torch.minimum((t / self.dt).floor().long(), last)
         k1 = torch.minimum(k + 1, last)
         w = (t / self.dt - k).clamp(0, 1).unsqueeze(-1)
@@ -250,6 +253,8 @@ class RolloutResult:
         T = self.positions.shape[1]
         if T < MIN_SAMPLES:
             raise TooFewSamplesError(f"a rollout with {T} samples cannot form demonstrations (need {MIN_SAMPLES})")
+        if isinstance(names, (str, bytes)):
+            raise InvalidArgumentError(f"names must be a sequence of B labels, got the string {names!r}")
         lengths = self.lengths.clamp(min=MIN_SAMPLES)
         T_keep = int(lengths.max())
         g = attractor if attractor is not None else self.attractor
@@ -276,7 +281,10 @@ def _check_tol(value: float | None, default: float, name: str) -> float:
 def _row_mask(rows: Any, B: int, device: torch.device) -> Tensor:
     if rows is None:
         return torch.ones(B, dtype=torch.bool, device=device)
-    r = torch.as_tensor(rows if isinstance(rows, Tensor) else np.asarray(rows), device=device)
+    try:
+        r = torch.as_tensor(rows if isinstance(rows, Tensor) else np.asarray(rows), device=device)
+    except (TypeError, ValueError, RuntimeError) as exc:  # strings, None, ragged lists
+        raise InvalidArgumentError(f"disturbance rows must be a bool mask or integer indices, got {rows!r}") from exc
     if r.dtype == torch.bool:
         if r.shape != (B,):
             raise ShapeMismatchError(f"disturbance row mask has shape {tuple(r.shape)}, expected ({B},)")
@@ -482,7 +490,9 @@ def rollout(
         v_tol = _check_tol(velocity_tol, DEFAULT_VELOCITY_TOL, "velocity_tol")
     plan = _schedule(disturbances, B, d, n_steps, x0)
 
-    grad = x0.requires_grad if requires_grad is None else bool(requires_grad)
+    if requires_grad is not None and not isinstance(requires_grad, bool):
+        raise InvalidArgumentError(f"requires_grad must be True, False or None, got {requires_grad!r}")
+    grad = x0.requires_grad if requires_grad is None else requires_grad
     ctx = contextlib.nullcontext() if grad else torch.no_grad()
     with ctx:
         positions, velocities, stop = _integrate(

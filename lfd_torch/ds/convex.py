@@ -79,11 +79,16 @@ def solve_problem(
 
     Raises:
         SolverError: no solver reached status ``optimal`` (the message lists each attempt and its outcome).
-        InvalidArgumentError: malformed ``solvers`` or ``solver_options``, or an option a solver does not know.
+        InvalidArgumentError: malformed ``solvers`` or ``solver_options``, options for a solver that is not tried,
+            or an option a solver does not know.
     """
     options = normalize_solver_options(solver_options)
+    names = normalize_solvers(solvers)
+    unused = sorted(set(options) - set(names))
+    if unused:  # a misspelt solver, or one not tried: its options would be dropped without a word
+        raise InvalidArgumentError(f"solver_options name {unused}, which are not among the solvers tried {list(names)}")
     attempts: list[str] = []
-    for name in normalize_solvers(solvers):
+    for name in names:
         try:
             with warnings.catch_warnings():  # "Solution may be inaccurate": the status is checked below
                 warnings.simplefilter("ignore", UserWarning)
@@ -98,5 +103,5 @@ def solve_problem(
         if problem.status == cp.OPTIMAL:
             return name
         attempts.append(f"{name}: status {problem.status}")
-    raise SolverError(f"{what} not solved to optimality (solvers={list(normalize_solvers(solvers))}, solver_options="
+    raise SolverError(f"{what} not solved to optimality (solvers={list(names)}, solver_options="
                       f"{options}); " + "; ".join(attempts))  # fmt: skip

@@ -182,6 +182,8 @@ def solve_lpv_matrices(
 
     Raises:
         SolverError: no solver reached optimality.
+        InvalidArgumentError: ``P`` not symmetric positive definite, bad ``gamma``, ``eps`` or ``ridge``.
+        ShapeMismatchError / NonFiniteError / TooFewSamplesError: inputs of the wrong shape, not finite, or empty.
     """
     check_samples(x, x_dot, min_samples=1)
     N, d = x.shape
@@ -195,6 +197,14 @@ def solve_lpv_matrices(
     check_tensor(P, "P", ndim=2, last_dim=d, shape_hint=f"({d}, {d})")
     if P.shape[0] != d:
         raise ShapeMismatchError(f"P must have shape ({d}, {d}), got {tuple(P.shape)}")
+    P64 = P.to(dtype=torch.float64, device=x.device)
+    scale = float(P64.abs().max().clamp_min(1e-300))
+    if not torch.allclose(P64, P64.T, rtol=1e-6, atol=1e-9 * scale):
+        raise InvalidArgumentError("P must be symmetric: the A step constrains A^T P + P A with the Lyapunov "
+                                   "matrix P of V(x) = (x - g)^T P (x - g)")  # fmt: skip
+    if float(torch.linalg.eigvalsh(0.5 * (P64 + P64.T))[0]) <= 0:
+        raise InvalidArgumentError("P must be positive definite: with an indefinite P the constraint "
+                                   "A^T P + P A < 0 does not make the system stable")  # fmt: skip
     check_float(eps, "eps", low=0.0, low_open=True)
     check_float(ridge, "ridge", low=0.0)
     K = gamma.shape[1]
@@ -213,7 +223,6 @@ def solve_lpv_matrices(
         L = torch.linalg.cholesky(G)
         Y = torch.linalg.solve_triangular(L, H.T, upper=False).T  # H L^-T
     problem, A_vars, params = _a_step_problem(K, d)
-    P64 = P.to(**f64)
     params["L"].value = L.cpu().numpy()
     params["Y"].value = Y.cpu().numpy()
     params["P"].value = (0.5 * (P64 + P64.T)).cpu().numpy()

@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from lfd_torch.ds.convex import DEFAULT_SOLVERS, solve_problem
-from lfd_torch.errors import CertificationError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.errors import CertificationError, InvalidArgumentError, ShapeMismatchError, TooFewSamplesError
 from lfd_torch.gmm import check_samples
 from lfd_torch.utils import check_float, check_tensor, solver_errors
 
@@ -56,6 +56,25 @@ def _check_attractor(x: Tensor, attractor: Tensor) -> None:
     check_tensor(attractor, "attractor")
 
 
+def _check_quadratic_form(x: Tensor, attractor: Tensor, P: Tensor, x_dot: Tensor | None = None) -> None:
+    """The checks of the public quadratic-form helpers: x (..., d) finite, x_dot like x, attractor (d,), P (d, d)
+    symmetric, all of one dtype and device."""
+    check_tensor(x, "x", min_ndim=1, shape_hint="(..., d)")
+    d = x.shape[-1]
+    if x_dot is not None:
+        check_tensor(x_dot, "x_dot", shape_hint="(..., d) like x")
+        if x_dot.shape != x.shape or x_dot.dtype != x.dtype or x_dot.device != x.device:
+            raise ShapeMismatchError(f"x_dot must match x {tuple(x.shape)} {x.dtype}, got {tuple(x_dot.shape)} "
+                                     f"{x_dot.dtype}")  # fmt: skip
+    _check_attractor(x, attractor)
+    check_tensor(P, "P", ndim=2, last_dim=d, shape_hint=f"({d}, {d})")
+    if P.shape[0] != d or P.dtype != x.dtype or P.device != x.device:
+        raise ShapeMismatchError(f"P must be ({d}, {d}) {x.dtype} on {x.device} like x, got {tuple(P.shape)} "
+                                 f"{P.dtype} on {P.device}")  # fmt: skip
+    if not torch.allclose(P, P.T, rtol=1e-6, atol=1e-9 * float(P.abs().max().clamp_min(1e-300))):
+        raise InvalidArgumentError("P must be symmetric (a quadratic form's matrix)")
+
+
 def quadratic_lyapunov(x: Tensor, attractor: Tensor, P: Tensor) -> Tensor:
     """V(x) = (x - g)^T P (x - g).
 
@@ -66,7 +85,11 @@ def quadratic_lyapunov(x: Tensor, attractor: Tensor, P: Tensor) -> Tensor:
 
     Returns:
         (...) values (units^2).
+
+    Raises:
+        ShapeMismatchError, NonFiniteError, InvalidArgumentError: see :func:`lyapunov_violation_rate`.
     """
+    _check_quadratic_form(x, attractor, P)
     e = x - attractor
     return torch.einsum("...i,ij,...j->...", e, P, e)
 
@@ -82,7 +105,11 @@ def quadratic_lyapunov_derivative(x: Tensor, x_dot: Tensor, attractor: Tensor, P
 
     Returns:
         (...) values (units^2/s).
+
+    Raises:
+        ShapeMismatchError, NonFiniteError, InvalidArgumentError: see :func:`lyapunov_violation_rate`.
     """
+    _check_quadratic_form(x, attractor, P, x_dot)
     return 2.0 * torch.einsum("...i,ij,...j->...", x - attractor, P, x_dot)
 
 
@@ -97,7 +124,13 @@ def lyapunov_violation_rate(x: Tensor, x_dot: Tensor, attractor: Tensor, P: Tens
 
     Returns:
         A number in [0, 1].
+
+    Raises:
+        ShapeMismatchError: shapes, dtypes or devices that do not match (attractor (d,), P (d, d)).
+        NonFiniteError: NaN or Inf in an input. TooFewSamplesError: no sample.
+        InvalidArgumentError: P not symmetric.
     """
+    check_samples(x, x_dot, min_samples=1)
     return float((quadratic_lyapunov_derivative(x, x_dot, attractor, P) >= 0).to(torch.float64).mean())
 
 

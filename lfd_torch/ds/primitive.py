@@ -38,16 +38,17 @@ from torch import Tensor
 
 from lfd_torch.errors import (
     CertificationError,
+    InvalidArgumentError,
     LfdError,
     NonFiniteError,
     ShapeMismatchError,
     StoreError,
     UnknownNameError,
 )
-from lfd_torch.gmm import GMM, GaussianBank
+from lfd_torch.gmm import GMM, GaussianBank, check_samples
 from lfd_torch.store import atomic_path
 from lfd_torch.store.checksum import DIGEST_KEY, compact_cpu, payload_digest, verify_digest
-from lfd_torch.utils import check_path, check_tensor, float_dtype, resolve_device, to_arguments
+from lfd_torch.utils import check_float, check_path, check_tensor, float_dtype, resolve_device, to_arguments
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -85,7 +86,15 @@ def quadratic_margins(A: Tensor, P: Tensor) -> Tensor:
 
     Returns:
         (K,) float64 tensor on the device of ``A``.
+
+    Raises:
+        ShapeMismatchError / NonFiniteError: A not a finite (K, d, d) tensor or P not a finite (d, d) one.
     """
+    check_tensor(A, "A", ndim=3, bounded=False, shape_hint="(K, d, d)")
+    d = A.shape[-1]
+    check_tensor(P, "P", ndim=2, last_dim=d, bounded=False, shape_hint=f"({d}, {d})")
+    if A.shape[-2] != d or P.shape[0] != d:
+        raise ShapeMismatchError(f"A must be (K, d, d) and P (d, d), got {tuple(A.shape)} and {tuple(P.shape)}")
     A64 = A.to(torch.float64)
     P64 = P.to(dtype=torch.float64, device=A.device)
     Q = A64.transpose(-2, -1) @ P64 + P64 @ A64
@@ -132,6 +141,10 @@ class StablePrimitive:
     info: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        if not isinstance(self.gmm, GMM):
+            raise ShapeMismatchError(f"gmm must be a GMM, got {type(self.gmm).__name__}")
+        if not isinstance(self.info, Mapping):
+            raise InvalidArgumentError(f"info must be a mapping (JSON-serialisable), got {type(self.info).__name__}")
         K, d = self.gmm.n_components, self.gmm.dim
         expected = {"A": (K, d, d), "attractor": (d,), "P": (d, d), "velocity_covariances": (K, d, d)}
         for name, shape in expected.items():
@@ -309,9 +322,12 @@ class StablePrimitive:
         """Inverse of :meth:`state_dict`; called on the base class it dispatches on ``kind``.
 
         Raises:
-            StoreError: unknown ``schema_version``, missing keys, or a ``kind`` that does not match ``cls``.
+            StoreError: not a mapping, unknown ``schema_version``, missing keys or malformed entries, or a ``kind``
+                that does not match ``cls``.
             CertificationError: the stored parameters are not certified.
         """
+        if not isinstance(state, Mapping):
+            raise StoreError(f"a primitive state dict must be a mapping, got {type(state).__name__}")
         version = state.get("schema_version")
         if version != SCHEMA_VERSION:
             raise StoreError(f"unsupported primitive schema_version {version!r}; this version reads {SCHEMA_VERSION}")
@@ -319,6 +335,15 @@ class StablePrimitive:
         if missing:
             raise StoreError(f"primitive state dict lacks {sorted(missing)}")
         kind = state["kind"]
+        bad = [k for k in ("A", "attractor", "P", "velocity_covariances") if not isinstance(state[k], Tensor)]
+        if not isinstance(kind, str) or not isinstance(state["info"], str) or not isinstance(state["gmm"], Mapping) \
+                or bad:  # fmt: skip
+            raise StoreError(f"primitive state dict: kind and info must be strings, gmm a mapping and the arrays "
+                             f"tensors (bad: {bad or [k for k in ('kind', 'info', 'gmm')]})")  # fmt: skip
+        try:
+            info = json.loads(state["info"])
+        except json.JSONDecodeError as exc:
+            raise StoreError(f"primitive state dict: info is not JSON ({exc})") from exc
         target = _registry().get(kind)
         if target is None:
             raise UnknownNameError("primitive kind", str(kind), tuple(_registry()))
@@ -332,7 +357,7 @@ class StablePrimitive:
             attractor=state["attractor"].to(**f),
             P=state["P"].to(**f),
             velocity_covariances=state["velocity_covariances"].to(**f),
-            info=json.loads(state["info"]),
+            info=info,
         )
 
     def save(self, path: str | os.PathLike[str]) -> Path:
@@ -346,7 +371,10 @@ class StablePrimitive:
         state[DIGEST_KEY] = payload_digest(state)
         path = check_path(path, "path", error=StoreError)
         with atomic_path(path) as tmp:
-            torch.save(state, tmp)
+            try:
+                torch.save(state, tmp)
+            except (OSError, RuntimeError) as exc:  # torch reports an unwritable folder as a RuntimeError
+                raise StoreError(f"cannot write primitive file {path}: {type(exc).__name__}: {exc}") from exc
         return path
 
     @classmethod
@@ -415,8 +443,24 @@ def residual_velocity_covariances(
 
     Returns:
         (K, d, d) symmetric positive-definite covariances ((units/s)^2).
+
+    Raises:
+        ShapeMismatchError / NonFiniteError / TooFewSamplesError: inputs of the wrong shapes, not finite, or empty.
+        InvalidArgumentError: ``gamma`` with negative entries, or ``prior_weight`` not a finite number > 0.
     """
-    d = x.shape[-1]
+    check_samples(x, x_dot, min_samples=1)
+    N, d = x.shape
+    check_tensor(gamma, "gamma", ndim=2, dtype=x.dtype, device=x.device, shape_hint="(N, K)")
+    K = gamma.shape[1]
+    if gamma.shape[0] != N or K == 0:
+        raise ShapeMismatchError(f"gamma must have shape ({N}, K >= 1), got {tuple(gamma.shape)}")
+    if bool((gamma < 0).any()):
+        raise InvalidArgumentError("gamma: responsibilities must be >= 0")
+    check_tensor(A, "A", dtype=x.dtype, device=x.device, shape_hint=f"({K}, {d}, {d})")
+    if A.shape != (K, d, d):
+        raise ShapeMismatchError(f"A must have shape ({K}, {d}, {d}) (K from gamma), got {tuple(A.shape)}")
+    check_tensor(attractor, "attractor", ndim=1, last_dim=d, dtype=x.dtype, device=x.device, shape_hint=f"({d},)")
+    check_float(prior_weight, "prior_weight", low=0.0, low_open=True)
     e = x - attractor
     r = x_dot.unsqueeze(-2) - torch.einsum("kij,nj->nki", A, e)  # (N, K, d)
     outer = r.unsqueeze(-1) * r.unsqueeze(-2)  # (N, K, d, d)
