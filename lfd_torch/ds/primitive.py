@@ -46,7 +46,7 @@ from lfd_torch.errors import (
     UnknownNameError,
 )
 from lfd_torch.gmm import GMM, GaussianBank, check_samples
-from lfd_torch.store import atomic_path
+from lfd_torch.store import atomic_save
 from lfd_torch.store.checksum import DIGEST_KEY, compact_cpu, payload_digest, verify_digest
 from lfd_torch.utils import check_float, check_path, check_tensor, float_dtype, resolve_device, to_arguments
 
@@ -361,21 +361,19 @@ class StablePrimitive:
         )
 
     def save(self, path: str | os.PathLike[str]) -> Path:
-        """Write :meth:`state_dict` with ``torch.save``, atomically (:func:`lfd_torch.store.atomic_path`: temporary
+        """Write :meth:`state_dict` with ``torch.save``, atomically (:func:`lfd_torch.store.atomic_save`: temporary
         file in the same folder, then ``os.replace``).
 
         Returns:
             The path written.
+
+        Raises:
+            StoreError: ``path`` is not a file path, or the file cannot be written (a file already there is kept).
         """
         state = self.state_dict()
         state[DIGEST_KEY] = payload_digest(state)
         path = check_path(path, "path", error=StoreError)
-        with atomic_path(path) as tmp:
-            try:
-                torch.save(state, tmp)
-            except (OSError, RuntimeError) as exc:  # torch reports an unwritable folder as a RuntimeError
-                raise StoreError(f"cannot write primitive file {path}: {type(exc).__name__}: {exc}") from exc
-        return path
+        return atomic_save(path, lambda tmp: torch.save(state, tmp), what="primitive file")
 
     @classmethod
     def load(

@@ -43,8 +43,14 @@ from torch import Tensor
 
 from lfd_torch.gmm.gaussian import gaussian_log_density
 from lfd_torch.errors import ShapeMismatchError
-from lfd_torch.gmm.model import GMM, InvalidGMMError, _gmm_from_dense_labels, check_samples
-from lfd_torch.gmm.niw import NIWPrior, niw_log_marginal_likelihood, niw_posterior, sample_gamma, sample_niw
+from lfd_torch.gmm.model import NOT_GIVEN, GMM, InvalidGMMError, _gmm_from_dense_labels, check_samples
+from lfd_torch.gmm.niw import (
+    NIWPrior,
+    _niw_posterior_unchecked,
+    _sample_gamma_unchecked,
+    niw_log_marginal_likelihood,
+    sample_niw,
+)
 from lfd_torch.gmm.postprocess import merge_small_components
 from lfd_torch.utils import check_float, check_generator, check_int
 
@@ -169,9 +175,9 @@ def _sample_parameters(
     """(log pi (K,), mu (K, d), Sigma (K, d, d), m (K, d)) drawn given the labels."""
     K, d = st.s.shape
     f = dict(dtype=st.s.dtype, device=st.s.device)
-    g = sample_gamma(st.n, generator)
+    g = _sample_gamma_unchecked(st.n, generator)
     log_pi = torch.log(g.clamp_min(1e-300)) - torch.log(g.sum())
-    mu, cov = sample_niw(niw_posterior(model.prior, st.n, st.s, st.Q), generator)
+    mu, cov = sample_niw(_niw_posterior_unchecked(model.prior, st.n, st.s, st.Q), generator)
     # mean direction: tangent-space Gaussian approximation of vMF(R/|R|, kappa |R|)
     rn = torch.linalg.vector_norm(st.R, dim=-1, keepdim=True)
     mhat = torch.where(rn > 0, st.R / rn.clamp_min(1e-300), torch.zeros_like(st.R))
@@ -260,6 +266,25 @@ def _merge_moves(
     return _relabel(target[z])
 
 
+def check_damm_hyperparameters(
+    *, alpha: float, kappa: float, kappa0: float, nu0_offset: float, psi_scale: float, n_iter: int,
+    min_cluster_size: int | None, reg_covar: object = NOT_GIVEN,
+) -> None:  # fmt: skip
+    """The checks of :func:`damm_labels` / :func:`fit_damm` on their hyperparameters (also run by
+    :class:`~lfd_torch.gmm.DAMMFitter` at construction); ``reg_covar`` is checked when given.
+
+    Raises:
+        InvalidGMMError: naming the first hyperparameter of the wrong type or out of range.
+    """
+    if reg_covar is not NOT_GIVEN:
+        check_float(reg_covar, "reg_covar", low=0.0, error=InvalidGMMError)
+    for name, v in (("alpha", alpha), ("kappa", kappa), ("kappa0", kappa0), ("nu0_offset", nu0_offset),
+                    ("psi_scale", psi_scale)):
+        check_float(v, name, low=0.0, low_open=True, error=InvalidGMMError)
+    check_int(n_iter, "n_iter", low=1, high=MAX_ITERATIONS, error=InvalidGMMError)
+    check_int(min_cluster_size, "min_cluster_size", low=1, allow_none=True, error=InvalidGMMError)
+
+
 def damm_labels(
     x: Tensor,
     x_dot: Tensor,
@@ -292,11 +317,8 @@ def damm_labels(
         raise ShapeMismatchError("x_dot (N, d) velocities are required, got None")
     check_samples(x, x_dot, min_samples=MIN_SAMPLES_DAMM)
     check_generator(generator, where="DAMM")
-    for name, v in (("alpha", alpha), ("kappa", kappa), ("kappa0", kappa0), ("nu0_offset", nu0_offset),
-                    ("psi_scale", psi_scale)):
-        check_float(v, name, low=0.0, low_open=True, error=InvalidGMMError)
-    check_int(n_iter, "n_iter", low=1, high=MAX_ITERATIONS, error=InvalidGMMError)
-    check_int(min_cluster_size, "min_cluster_size", low=1, allow_none=True, error=InvalidGMMError)
+    check_damm_hyperparameters(alpha=alpha, kappa=kappa, kappa0=kappa0, nu0_offset=nu0_offset, psi_scale=psi_scale,
+                               n_iter=n_iter, min_cluster_size=min_cluster_size)  # fmt: skip
     N, d = x.shape
     if d < 2:
         raise InvalidGMMError("DAMM needs d >= 2 (directions live on the unit sphere)")

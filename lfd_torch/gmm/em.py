@@ -36,7 +36,7 @@ import torch
 from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError, TooFewSamplesError
-from lfd_torch.gmm.model import GMM, check_samples
+from lfd_torch.gmm.model import NOT_GIVEN, GMM, check_samples
 from lfd_torch.utils import check_float, check_generator, check_int
 
 __all__ = [
@@ -184,15 +184,36 @@ def _check_em_args(
     kmeans_iter: int = 1, generator: object = None,
 ) -> None:  # fmt: skip
     check_samples(x, min_samples=1)
-    check_int(n_components, "n_components", low=1, error=TooFewSamplesError)
+    check_em_hyperparameters(n_components=n_components, n_init=n_init, max_iter=max_iter, tol=tol,
+                             reg_covar=reg_covar, kmeans_iter=kmeans_iter)  # fmt: skip
     if x.shape[0] < n_components:
         raise TooFewSamplesError(f"x has {x.shape[0]} samples, they cannot support n_components = {n_components}")
+    check_generator(generator, where="EM")
+
+
+def check_em_hyperparameters(
+    *, n_components: object = NOT_GIVEN, k_range: object = NOT_GIVEN, n_init: object, max_iter: object,
+    tol: object, reg_covar: object, kmeans_iter: object, n_effective: object = NOT_GIVEN,
+) -> None:  # fmt: skip
+    """The checks of :func:`fit_em` / :func:`fit_em_bic` on their hyperparameters, without the data (also run by
+    :class:`~lfd_torch.gmm.EMFitter` and :class:`~lfd_torch.gmm.EMBICFitter` at construction); the optional ones
+    are checked when given.
+
+    Raises:
+        TooFewSamplesError: ``n_components`` not an integer >= 1. InvalidArgumentError: another hyperparameter of
+            the wrong type or out of range (naming it).
+    """
+    if n_components is not NOT_GIVEN:
+        check_int(n_components, "n_components", low=1, error=TooFewSamplesError)
+    if k_range is not NOT_GIVEN:
+        _k_candidates(k_range)
     check_int(n_init, "n_init", low=1, high=MAX_RESTARTS)
     check_int(max_iter, "max_iter", low=0, high=MAX_ITER)
     check_int(kmeans_iter, "kmeans_iter", low=0, high=MAX_ITER)
     check_float(tol, "tol", low=0.0)
     check_float(reg_covar, "reg_covar", low=0.0)
-    check_generator(generator, where="EM")
+    if n_effective is not NOT_GIVEN:
+        check_float(n_effective, "n_effective", low=0.0, low_open=True, allow_none=True)
 
 
 def fit_em(
@@ -246,7 +267,13 @@ def fit_em(
 
 
 def n_parameters(n_components: int, dim: int) -> int:
-    """Free parameters of a full-covariance GMM: (K - 1) + K d + K d (d + 1) / 2."""
+    """Free parameters of a full-covariance GMM: (K - 1) + K d + K d (d + 1) / 2.
+
+    Raises:
+        InvalidArgumentError: ``n_components`` or ``dim`` is not an integer >= 1.
+    """
+    n_components = check_int(n_components, "n_components", low=1)
+    dim = check_int(dim, "dim", low=1)
     return (n_components - 1) + n_components * dim + n_components * dim * (dim + 1) // 2
 
 
@@ -322,8 +349,13 @@ def bic(gmm: GMM, x: Tensor, *, n_effective: float | None = None) -> float:
             returns -2 (N_eff / N) log L + p log N_eff (module docstring). None: the plain BIC.
 
     Raises:
-        InvalidArgumentError: ``n_effective`` outside (0, N].
+        InvalidArgumentError: ``gmm`` is not a GMM, or ``n_effective`` not a number in (0, N].
+        TooFewSamplesError, ShapeMismatchError, NonFiniteError: ``x`` is not a finite (N, d) tensor with N >= 1.
     """
+    if not isinstance(gmm, GMM):
+        raise InvalidArgumentError(f"gmm must be a GMM, got {type(gmm).__name__}")
+    check_samples(x, min_samples=1)
+    check_float(n_effective, "n_effective", low=0.0, low_open=True, allow_none=True)
     ll = float(gmm.log_prob(x).sum())
     p = n_parameters(gmm.n_components, gmm.dim)
     N = x.shape[0]
@@ -335,13 +367,8 @@ def bic(gmm: GMM, x: Tensor, *, n_effective: float | None = None) -> float:
     return -2.0 * (n_eff / N) * ll + p * math.log(n_eff)
 
 
-def check_k_range(k_range: Iterable[int], n_samples: int) -> list[int]:
-    """The sorted distinct candidates K of ``k_range`` that N = ``n_samples`` samples support (K <= N).
-
-    Raises:
-        InvalidArgumentError: not an iterable of integers >= 1, or more than 1000 candidates.
-        TooFewSamplesError: no candidate K <= N.
-    """
+def _k_candidates(k_range: Iterable[int]) -> list[int]:
+    """The sorted distinct candidates of ``k_range`` (the checks of :func:`check_k_range` that need no data)."""
     if isinstance(k_range, (str, bytes)) or not isinstance(k_range, Iterable):
         raise InvalidArgumentError(f"k_range must be an iterable of integers >= 1, got {k_range!r}")
     if isinstance(k_range, range) and len(k_range) > MAX_K_CANDIDATES or (
@@ -351,7 +378,17 @@ def check_k_range(k_range: Iterable[int], n_samples: int) -> list[int]:
     ks = sorted({check_int(k, "k_range entry", low=1) for k in k_range})
     if len(ks) > MAX_K_CANDIDATES:
         raise InvalidArgumentError(f"k_range has {len(ks)} candidates, at most {MAX_K_CANDIDATES} are allowed")
-    ks = [k for k in ks if k <= n_samples]
+    return ks
+
+
+def check_k_range(k_range: Iterable[int], n_samples: int) -> list[int]:
+    """The sorted distinct candidates K of ``k_range`` that N = ``n_samples`` samples support (K <= N).
+
+    Raises:
+        InvalidArgumentError: not an iterable of integers >= 1, or more than 1000 candidates.
+        TooFewSamplesError: no candidate K <= N.
+    """
+    ks = [k for k in _k_candidates(k_range) if k <= n_samples]
     if not ks:
         raise TooFewSamplesError(f"no candidate K in k_range = {k_range!r} is <= the {n_samples} samples")
     return ks
@@ -384,9 +421,12 @@ def fit_em_bic(
 
     Raises:
         TooFewSamplesError: no admissible K in ``k_range``.
+        InvalidArgumentError: a hyperparameter of the wrong type or out of range (``n_effective`` included, checked
+            before any fit).
     """
     check_samples(x, min_samples=1)
     ks = check_k_range(k_range, x.shape[0])
+    check_float(n_effective, "n_effective", low=0.0, low_open=True, allow_none=True)
     best: tuple[float, GMM] | None = None
     for k in ks:
         gmm = fit_em(

@@ -1,5 +1,8 @@
 """Config-friendly fitters: one frozen dataclass per method whose fields are the method's hyperparameters.
 
+The fields are validated at construction, by the very checks the fit function runs (``check_*_hyperparameters``),
+so a bad value in a config fails when the fitter is built, not at the first fit.
+
 Every fitter is called the same way, ``fitter(x, x_dot, *, generator) -> GMM``, so LPV-DS can take any of
 them from ``conf/gmm/<method>.yaml`` (``_target_`` + the fields below, one for one). Methods that ignore
 velocities (EM, EM+BIC) accept and ignore ``x_dot``.
@@ -14,10 +17,10 @@ import torch
 from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError
-from lfd_torch.gmm.damm import fit_damm
-from lfd_torch.gmm.em import fit_em, fit_em_bic
+from lfd_torch.gmm.damm import check_damm_hyperparameters, fit_damm
+from lfd_torch.gmm.em import check_em_hyperparameters, fit_em, fit_em_bic
 from lfd_torch.gmm.model import GMM
-from lfd_torch.gmm.pcgmm import fit_pcgmm
+from lfd_torch.gmm.pcgmm import check_pcgmm_hyperparameters, fit_pcgmm
 from lfd_torch.utils import check_generator
 
 __all__ = ["PCGMMFitter", "DAMMFitter", "EMFitter", "EMBICFitter"]
@@ -47,6 +50,9 @@ class PCGMMFitter:
     reg_covar: float = 1e-3
     uses_velocities = True
 
+    def __post_init__(self) -> None:
+        check_pcgmm_hyperparameters(**_hyperparameters(self))
+
     def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
         """Fit to positions x (N, d) and velocities x_dot (N, d) (required)."""
         if x_dot is None:
@@ -69,6 +75,9 @@ class DAMMFitter:
     reg_covar: float = 1e-3
     uses_velocities = True
 
+    def __post_init__(self) -> None:
+        check_damm_hyperparameters(**_hyperparameters(self))
+
     def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
         """Fit to positions x (N, d) and velocities x_dot (N, d) (required)."""
         if x_dot is None:
@@ -88,6 +97,9 @@ class EMFitter:
     reg_covar: float = 1e-6
     kmeans_iter: int = 10
     uses_velocities = False
+
+    def __post_init__(self) -> None:
+        check_em_hyperparameters(**_hyperparameters(self))
 
     def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
         """Fit to positions x (N, d); ``x_dot`` is ignored."""
@@ -111,6 +123,7 @@ class EMBICFitter:
         if isinstance(self.k_range, (str, bytes)) or not isinstance(self.k_range, Iterable):
             raise InvalidArgumentError(f"k_range must be a sequence of integers >= 1, got {self.k_range!r}")
         object.__setattr__(self, "k_range", tuple(self.k_range))
+        check_em_hyperparameters(**_hyperparameters(self))
 
     def __call__(self, x: Tensor, x_dot: Tensor | None = None, *, generator: torch.Generator) -> GMM:
         """Fit to positions x (N, d); ``x_dot`` is ignored."""

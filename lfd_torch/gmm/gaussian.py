@@ -19,7 +19,8 @@ import math
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import ShapeMismatchError
+from lfd_torch.errors import InvalidArgumentError, InvalidGMMError, ShapeMismatchError
+from lfd_torch.utils import check_tensor
 
 __all__ = [
     "GaussianBank",
@@ -33,6 +34,11 @@ __all__ = [
 ]
 
 LOG_2PI = math.log(2.0 * math.pi)
+
+
+class NotPositiveDefiniteError(InvalidArgumentError, torch.linalg.LinAlgError):
+    """A covariance that cannot be factorised: an InvalidArgumentError naming the argument, and still the
+    ``torch.linalg.LinAlgError`` that callers of the sampling loops map to a SolverError."""
 
 
 def gaussian_log_normalizer(cholesky: Tensor) -> Tensor:
@@ -62,14 +68,31 @@ def gaussian_log_density(x: Tensor, mean: Tensor, covariance: Tensor) -> Tensor:
         (..., n, K) log densities, in the dtype and device of the inputs.
 
     Raises:
-        ShapeMismatchError: the trailing dimensions of the three arguments disagree.
+        ShapeMismatchError: the trailing dimensions, dtypes or devices of the three arguments disagree.
+        InvalidArgumentError: a covariance that is not positive definite (naming ``covariance``).
+
+    This is the inner kernel of the samplers (called at every sweep), so it does not scan its inputs for NaN or Inf:
+    a non-finite ``x`` gives non-finite rows. The public entry points that take data (:class:`GMM` methods,
+    :meth:`GaussianBank.log_density`, the fitters) check their points first.
     """
+    for name, t in (("x", x), ("mean", mean), ("covariance", covariance)):
+        if not isinstance(t, Tensor):
+            raise ShapeMismatchError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+    if x.ndim < 2 or mean.ndim < 1 or covariance.ndim < 2:
+        raise ShapeMismatchError(f"x, mean and covariance must have shapes (..., n, d), (..., K, d), (..., K, d, d), "
+                                 f"got {tuple(x.shape)}, {tuple(mean.shape)}, {tuple(covariance.shape)}")  # fmt: skip
     d = x.shape[-1]
     if mean.shape[-1] != d or covariance.shape[-2:] != (d, d):
         raise ShapeMismatchError(
             f"samples have dimension {d}, mean {tuple(mean.shape)}, covariance {tuple(covariance.shape)}"
         )
-    chol = torch.linalg.cholesky(covariance)  # (..., K, d, d)
+    if not (x.dtype == mean.dtype == covariance.dtype) or not (x.device == mean.device == covariance.device):
+        raise ShapeMismatchError(f"x ({x.dtype} on {x.device}), mean ({mean.dtype} on {mean.device}) and covariance "
+                                 f"({covariance.dtype} on {covariance.device}) must share dtype and device")  # fmt: skip
+    try:
+        chol = torch.linalg.cholesky(covariance)  # (..., K, d, d)
+    except torch.linalg.LinAlgError as exc:  # free on valid input: no scan of the factors
+        raise NotPositiveDefiniteError(f"covariance is not symmetric positive definite: {exc}") from exc
     diff = x.unsqueeze(-3) - mean.unsqueeze(-2)  # (..., K, n, d)
     z = torch.linalg.solve_triangular(chol, diff.transpose(-1, -2), upper=False)  # (..., K, d, n)
     maha = (z * z).sum(-2)  # (..., K, n)
@@ -86,13 +109,23 @@ class GaussianBank:
     Args:
         means: (K, d).
         covariances: (K, d, d), symmetric positive definite.
+
+    Raises:
+        ShapeMismatchError: shapes, dtypes or devices that disagree. NonFiniteError: NaN or Inf in a parameter.
+        InvalidGMMError: a covariance that is not positive definite (naming its index).
     """
 
     def __init__(self, means: Tensor, covariances: Tensor):
+        check_tensor(means, "means", ndim=2, bounded=False, shape_hint="(K, d)")
         K, d = means.shape
+        check_tensor(covariances, "covariances", ndim=3, dtype=means.dtype, device=means.device, bounded=False,
+                     shape_hint=f"({K}, {d}, {d})")  # fmt: skip
         if covariances.shape != (K, d, d):
             raise ShapeMismatchError(f"covariances must have shape {(K, d, d)}, got {tuple(covariances.shape)}")
-        chol = torch.linalg.cholesky(covariances)
+        chol, info = torch.linalg.cholesky_ex(covariances)
+        if K and bool((info != 0).any()):
+            k = int(torch.nonzero(info != 0)[0])
+            raise InvalidGMMError(f"covariances[{k}] is not symmetric positive definite")
         eye = torch.eye(d, dtype=chol.dtype, device=chol.device).expand(K, d, d)
         chol_inv = torch.linalg.solve_triangular(chol, eye, upper=False)
         self.n_components, self.dim = K, d
@@ -102,9 +135,14 @@ class GaussianBank:
         self._log_norm = gaussian_log_normalizer(chol).reshape(K, 1)
 
     def log_density(self, x: Tensor) -> Tensor:
-        """(n, K) log N(x_t; mu_k, Sigma_k) of (n, d) points."""
-        if x.ndim != 2 or x.shape[-1] != self.dim:
-            raise ShapeMismatchError(f"points must have shape (n, {self.dim}), got {tuple(x.shape)}")
+        """(n, K) log N(x_t; mu_k, Sigma_k) of (n, d) points, in the bank's dtype and device.
+
+        Raises:
+            ShapeMismatchError: not an (n, d) tensor of the bank's dtype and device. NonFiniteError: NaN or Inf in x
+                (:meth:`log_density_fm`, the feature-major hot path, does not scan its input).
+        """
+        check_tensor(x, "x", ndim=2, last_dim=self.dim, dtype=self._affine.dtype, device=self._affine.device,
+                     bounded=False, shape_hint=f"(n, {self.dim})")  # fmt: skip
         return self.log_density_fm(x.T).T
 
     def log_density_fm(self, xt: Tensor) -> Tensor:

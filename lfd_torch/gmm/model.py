@@ -16,16 +16,27 @@ normaliser from :func:`~lfd_torch.gmm.gaussian.gaussian_log_normalizer`.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import InvalidGMMError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.errors import (
+    InvalidArgumentError,
+    InvalidGMMError,
+    NonFiniteError,
+    ShapeMismatchError,
+    StoreError,
+    TooFewSamplesError,
+)
 from lfd_torch.gmm.gaussian import gaussian_log_normalizer
-from lfd_torch.utils import check_generator, check_int, check_tensor, to_arguments
+from lfd_torch.utils import check_float, check_generator, check_int, check_tensor, to_arguments
 
 __all__ = ["GMM", "InvalidGMMError", "check_samples"]
+
+#: Default of optional hyperparameter arguments of the check helpers: "not given, do not check".
+NOT_GIVEN = object()
 
 #: Relative tolerance on sum(weights) == 1 and on the symmetry of the covariances.
 _WEIGHT_TOL = 1e-6
@@ -241,10 +252,21 @@ class GMM:
 
         Returns:
             A GMM with K = number of distinct labels.
+
+        Raises:
+            ShapeMismatchError, TooFewSamplesError, NonFiniteError: ``x`` is not a finite (N, d) tensor, or
+                ``labels`` is not a real (N,) tensor (NaN labels included).
+            InvalidGMMError: ``reg_covar`` is not a finite number >= 0.
         """
         check_samples(x, min_samples=1)
+        if not isinstance(labels, Tensor) or labels.is_complex():
+            what = labels.dtype if isinstance(labels, Tensor) else type(labels).__name__
+            raise ShapeMismatchError(f"labels must be a torch.Tensor of shape ({x.shape[0]},), got {what}")
         if labels.shape != (x.shape[0],):
             raise ShapeMismatchError(f"labels must have shape ({x.shape[0]},), got {tuple(labels.shape)}")
+        if labels.is_floating_point() and not bool(torch.isfinite(labels).all()):
+            raise NonFiniteError("labels contain NaN or Inf")
+        check_float(reg_covar, "reg_covar", low=0.0, error=InvalidGMMError)
         _, z = torch.unique(labels.to(x.device), return_inverse=True)
         return _gmm_from_dense_labels(x, z, reg_covar)
 
@@ -257,7 +279,15 @@ class GMM:
         return GMM(self.weights.to(**f), self.means.to(**f), self.covariances.to(**f))
 
     def replace(self, **changes: Tensor) -> GMM:
-        """A copy with some of ``weights``, ``means``, ``covariances`` replaced; validated again."""
+        """A copy with some of ``weights``, ``means``, ``covariances`` replaced; validated again.
+
+        Raises:
+            InvalidArgumentError: a keyword that is not one of the three fields. Otherwise as the constructor.
+        """
+        unknown = sorted(set(changes) - {"weights", "means", "covariances"})
+        if unknown:
+            raise InvalidArgumentError(f"GMM.replace got unknown field(s) {unknown}; the fields are weights, means, "
+                                       "covariances")  # fmt: skip
         return dataclasses.replace(self, **changes)
 
     def state_dict(self) -> dict[str, Tensor]:
@@ -266,7 +296,14 @@ class GMM:
 
     @classmethod
     def from_state_dict(cls, state: dict[str, Tensor]) -> GMM:
-        """Inverse of :meth:`state_dict` (extra keys are rejected)."""
+        """Inverse of :meth:`state_dict` (extra keys are rejected).
+
+        Raises:
+            StoreError: ``state`` is not a mapping. ShapeMismatchError: other keys than the three fields. Otherwise
+                as the constructor.
+        """
+        if not isinstance(state, Mapping):
+            raise StoreError(f"a GMM state dict must be a mapping, got {type(state).__name__}")
         keys = {"weights", "means", "covariances"}
         if set(state) != keys:
             raise ShapeMismatchError(f"GMM state dict needs exactly the keys {sorted(keys)}, got {sorted(state)}")

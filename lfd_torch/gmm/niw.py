@@ -27,8 +27,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError, TooFewSamplesError
-from lfd_torch.gmm.gaussian import gaussian_log_normalizer
+from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
+from lfd_torch.gmm.gaussian import NotPositiveDefiniteError, gaussian_log_normalizer
+from lfd_torch.utils import check_float, check_generator, check_int, check_tensor, solver_errors
 
 __all__ = [
     "NIWPrior",
@@ -56,6 +57,13 @@ class NIWPrior:
         kappa: (...,) pseudo-count of the mean (> 0).
         dof: (...,) degrees of freedom nu0 of the inverse Wishart (> d - 1).
         scale: (..., d, d) scale matrix Psi0 (symmetric positive definite); E[Sigma] = Psi0 / (nu0 - d - 1).
+
+    Construction checks the types and shapes of the fields and that ``kappa > 0`` and ``dof > d - 1`` (finite);
+    the positive definiteness of ``scale`` is checked where it is factorised (:func:`sample_niw`).
+
+    Raises:
+        ShapeMismatchError: a field that is not a floating-point tensor, or ``scale`` not (..., d, d).
+        InvalidArgumentError: ``kappa <= 0`` or ``dof <= d - 1`` (or NaN / Inf), naming the field.
     """
 
     mean: Tensor
@@ -63,9 +71,37 @@ class NIWPrior:
     dof: Tensor
     scale: Tensor
 
+    def __post_init__(self) -> None:
+        for name in ("mean", "kappa", "dof", "scale"):
+            t = getattr(self, name)
+            if not isinstance(t, Tensor) or not t.is_floating_point():
+                what = t.dtype if isinstance(t, Tensor) else type(t).__name__
+                raise ShapeMismatchError(f"NIWPrior.{name} must be a floating-point torch.Tensor, got {what}")
+        if self.mean.ndim < 1 or self.scale.ndim < 2 or self.scale.shape[-2:] != (self.dim, self.dim):
+            raise ShapeMismatchError(f"NIWPrior.mean must be (..., d) and NIWPrior.scale (..., d, d), got "
+                                     f"{tuple(self.mean.shape)} and {tuple(self.scale.shape)}")  # fmt: skip
+        if not bool((self.kappa > 0).all() & torch.isfinite(self.kappa).all()):
+            raise InvalidArgumentError(f"NIWPrior.kappa must be finite and > 0, got {_few(self.kappa)}")
+        if not bool((self.dof > self.dim - 1).all() & torch.isfinite(self.dof).all()):
+            raise InvalidArgumentError(f"NIWPrior.dof must be finite and > d - 1 = {self.dim - 1}, got "
+                                       f"{_few(self.dof)}")  # fmt: skip
+
     @property
     def dim(self) -> int:
         return self.mean.shape[-1]
+
+
+def _few(t: Tensor) -> str:
+    values = t.detach().reshape(-1)[:4].tolist()
+    return f"{values}{' ...' if t.numel() > 4 else ''}"
+
+
+def _niw_unchecked(mean: Tensor, kappa: Tensor, dof: Tensor, scale: Tensor) -> NIWPrior:
+    """NIWPrior without the checks of its constructor (fields valid by construction, e.g. a posterior)."""
+    out = object.__new__(NIWPrior)
+    for name, value in (("mean", mean), ("kappa", kappa), ("dof", dof), ("scale", scale)):
+        object.__setattr__(out, name, value)
+    return out
 
 
 def niw_prior_from_data(
@@ -93,22 +129,22 @@ def niw_prior_from_data(
     Raises:
         ShapeMismatchError: x is not (N, d).
         TooFewSamplesError: N < 2.
-        InvalidArgumentError: a non-positive hyperparameter.
+        NonFiniteError: NaN, Inf or an overflowing magnitude in x.
+        InvalidArgumentError: a hyperparameter that is not a positive finite number (naming it).
     """
-    if x.ndim != 2:
-        raise ShapeMismatchError(f"x must be (N, d), got {tuple(x.shape)}")
+    check_tensor(x, "x", ndim=2, min_rows=2, shape_hint="(N, d)")
     n, d = x.shape
-    if n < 2:
-        raise TooFewSamplesError(f"need at least 2 samples to set the prior scale, got {n}")
-    if not (covariance_scale > 0 and mean_pseudo_count > 0 and extra_dof > 0):
-        raise InvalidArgumentError(f"covariance_scale, mean_pseudo_count and extra_dof must be positive, got "
-                                   f"{covariance_scale}, {mean_pseudo_count}, {extra_dof}")
+    if d == 0:
+        raise ShapeMismatchError(f"x must be (N, d) with d >= 1, got {tuple(x.shape)}")
+    for name, value in (("covariance_scale", covariance_scale), ("mean_pseudo_count", mean_pseudo_count),
+                        ("extra_dof", extra_dof)):
+        check_float(value, name, low=0.0, low_open=True)
     var = x.var(dim=0, unbiased=True)
     floor = var.max().clamp_min(torch.finfo(x.dtype).tiny) * 1e-6  # a flat axis still gets a proper prior
     var = torch.maximum(var, floor)
     dof = d + 1.0 + extra_dof
     scale = torch.diag(var * covariance_scale * (dof - d - 1.0))
-    return NIWPrior(
+    return _niw_unchecked(
         mean=x.mean(0),
         kappa=x.new_tensor(mean_pseudo_count),
         dof=x.new_tensor(dof),
@@ -149,7 +185,20 @@ def niw_posterior(prior: NIWPrior, counts: Tensor, sums: Tensor, outer: Tensor) 
     Precision: the scale is updated from raw moments, which cancel in float32 when the data lie far from the
     origin relative to their spread; the package's callers (PC-GMM, DAMM, the segmentation sampler) standardise in
     float64 first, and so should other callers.
+
+    Raises:
+        InvalidArgumentError: ``prior`` is not an NIWPrior, or ``counts`` holds a negative or NaN count.
     """
+    if not isinstance(prior, NIWPrior):
+        raise InvalidArgumentError(f"prior must be an NIWPrior, got {type(prior).__name__}")
+    if not isinstance(counts, Tensor) or not bool((counts >= 0).all()):
+        what = _few(counts) if isinstance(counts, Tensor) else type(counts).__name__
+        raise InvalidArgumentError(f"counts must be a tensor of non-negative sample counts, got {what}")
+    return _niw_posterior_unchecked(prior, counts, sums, outer)
+
+
+def _niw_posterior_unchecked(prior: NIWPrior, counts: Tensor, sums: Tensor, outer: Tensor) -> NIWPrior:
+    """:func:`niw_posterior` without its argument checks (the samplers' inner loops; counts >= 0 by construction)."""
     kappa_n = prior.kappa + counts
     dof_n = prior.dof + counts
     mean_n = (prior.kappa.unsqueeze(-1) * prior.mean + sums) / kappa_n.unsqueeze(-1)
@@ -161,7 +210,7 @@ def niw_posterior(prior: NIWPrior, counts: Tensor, sums: Tensor, outer: Tensor) 
         - kappa_n[..., None, None] * (mean_n.unsqueeze(-1) * mean_n.unsqueeze(-2))
     )
     scale_n = 0.5 * (scale_n + scale_n.transpose(-1, -2))
-    return NIWPrior(mean=mean_n, kappa=kappa_n, dof=dof_n, scale=scale_n)
+    return _niw_unchecked(mean=mean_n, kappa=kappa_n, dof=dof_n, scale=scale_n)
 
 
 def log_multigamma(a: Tensor, d: int) -> Tensor:
@@ -217,7 +266,7 @@ def niw_log_marginal_likelihood(prior: NIWPrior, counts: Tensor, sums: Tensor, o
     Returns:
         (..., K) log marginal likelihoods; exactly 0 for empty states.
     """
-    post = niw_posterior(prior, counts, sums, outer)
+    post = _niw_posterior_unchecked(prior, counts, sums, outer)
     out = niw_log_marginal_normalizer(prior, counts) - 0.5 * post.dof * _logdet(post.scale)
     return torch.where(counts > 0, out, torch.zeros_like(out))
 
@@ -273,7 +322,7 @@ def niw_log_density(mean: Tensor, covariance: Tensor, params: NIWPrior) -> Tenso
 
 
 def sample_gamma(shape: Tensor, generator: torch.Generator, *, max_rounds: int = 64) -> Tensor:
-    """Gamma(shape, rate 1) draws for every entry of ``shape`` (>= 0), reproducible through ``generator``.
+    """Gamma(shape, rate 1) draws for every entry of ``shape`` (finite, >= 0), reproducible through ``generator``.
 
     Marsaglia & Tsang (2000) squeeze method with the boost ``Gamma(a) = Gamma(a + 1) * U^(1/a)`` for a < 1.
     All entries draw in lock-step until each has an accepted value (torch._standard_gamma takes no generator).
@@ -284,8 +333,26 @@ def sample_gamma(shape: Tensor, generator: torch.Generator, *, max_rounds: int =
         max_rounds: rejection rounds (acceptance is > 95 % per round; the rare leftovers take the mode).
 
     Returns:
-        (...) draws, floored at the smallest positive normal number of the dtype.
+        (...) draws, floored at the smallest positive normal number of the dtype (a shape of 0, the degenerate
+        limit, draws that floor).
+
+    Raises:
+        InvalidArgumentError: a negative, NaN or Inf shape, ``max_rounds`` not in [1, 10000], or no generator.
+        ShapeMismatchError: ``shape`` is not a floating-point tensor.
     """
+    if not isinstance(shape, Tensor) or not shape.is_floating_point():
+        what = shape.dtype if isinstance(shape, Tensor) else type(shape).__name__
+        raise ShapeMismatchError(f"shape must be a floating-point tensor of Gamma shape parameters, got {what}")
+    check_generator(generator, where="sample_gamma")
+    check_int(max_rounds, "max_rounds", low=1, high=10_000)
+    if shape.numel() and not bool(((shape >= 0) & (shape < math.inf)).all()):
+        bad = shape[~((shape >= 0) & (shape < math.inf))]
+        raise InvalidArgumentError(f"shape (Gamma shape parameters) must be finite and >= 0, got {_few(bad)}")
+    return _sample_gamma_unchecked(shape, generator, max_rounds=max_rounds)
+
+
+def _sample_gamma_unchecked(shape: Tensor, generator: torch.Generator, *, max_rounds: int = 64) -> Tensor:
+    """:func:`sample_gamma` without its argument checks (the samplers' inner loops)."""
     a = shape
     boost = a < 1.0
     a1 = torch.where(boost, a + 1.0, a)
@@ -311,7 +378,7 @@ def sample_gamma(shape: Tensor, generator: torch.Generator, *, max_rounds: int =
 def _sample_bartlett(dof: Tensor, dim: int, generator: torch.Generator) -> Tensor:
     """Bartlett factor A (..., d, d), lower triangular, with A A^T ~ Wishart(dof, I); dof (...)."""
     chi_dofs = dof.unsqueeze(-1) - torch.arange(dim, dtype=dof.dtype, device=dof.device)  # (..., d)
-    diag = torch.sqrt(2.0 * sample_gamma(chi_dofs / 2.0, generator))  # chi^2_k = 2 Gamma(k / 2, 1)
+    diag = torch.sqrt(2.0 * _sample_gamma_unchecked(chi_dofs / 2.0, generator))  # chi^2_k = 2 Gamma(k / 2, 1)
     normal = torch.randn(*dof.shape, dim, dim, generator=generator, dtype=dof.dtype, device=dof.device)
     return torch.tril(normal, diagonal=-1) + torch.diag_embed(diag)
 
@@ -328,19 +395,34 @@ def sample_niw(params: NIWPrior, generator: torch.Generator) -> tuple[Tensor, Te
 
     Returns:
         mean (..., d), covariance (..., d, d).
+
+    Raises:
+        InvalidArgumentError: ``params`` is not an NIWPrior, no generator, or ``params.scale`` is not positive
+            definite (that error is also a ``torch.linalg.LinAlgError``, as before).
+        SolverError: the draw cannot be factorised (a degenerate draw in finite precision).
     """
+    if not isinstance(params, NIWPrior):
+        raise InvalidArgumentError(f"params must be an NIWPrior, got {type(params).__name__}")
+    check_generator(generator, where="sample_niw")
     d = params.dim
     batch = params.mean.shape[:-1]
     dtype, device = params.mean.dtype, params.mean.device
-    chol_scale = torch.linalg.cholesky(params.scale.expand(*batch, d, d))
+    try:
+        chol_scale = torch.linalg.cholesky(params.scale.expand(*batch, d, d))
+    except torch.linalg.LinAlgError as exc:
+        raise NotPositiveDefiniteError(f"params.scale is not symmetric positive definite: {exc}") from exc
+    except RuntimeError as exc:  # a scale that does not broadcast against the mean's batch
+        raise ShapeMismatchError(f"params.scale {tuple(params.scale.shape)} does not broadcast against params.mean "
+                                 f"{tuple(params.mean.shape)}: {exc}") from exc  # fmt: skip
     bartlett = _sample_bartlett(params.dof.to(dtype=dtype, device=device).expand(batch), d, generator)
-    factor = torch.linalg.solve_triangular(chol_scale.transpose(-1, -2), bartlett, upper=True)  # B = L^-T A
-    eye = torch.eye(d, dtype=dtype, device=device).expand(*batch, d, d)
-    factor_inv = torch.linalg.solve(factor, eye)
-    covariance = factor_inv.transpose(-1, -2) @ factor_inv  # (B B^T)^-1 = B^-T B^-1
-    covariance = 0.5 * (covariance + covariance.transpose(-1, -2))
-    kappa = params.kappa.expand(batch)
-    chol_cov = torch.linalg.cholesky(covariance / kappa[..., None, None])
+    with solver_errors("sample_niw (the inverse-Wishart draw)"):
+        factor = torch.linalg.solve_triangular(chol_scale.transpose(-1, -2), bartlett, upper=True)  # B = L^-T A
+        eye = torch.eye(d, dtype=dtype, device=device).expand(*batch, d, d)
+        factor_inv = torch.linalg.solve(factor, eye)
+        covariance = factor_inv.transpose(-1, -2) @ factor_inv  # (B B^T)^-1 = B^-T B^-1
+        covariance = 0.5 * (covariance + covariance.transpose(-1, -2))
+        kappa = params.kappa.expand(batch)
+        chol_cov = torch.linalg.cholesky(covariance / kappa[..., None, None])
     z = torch.randn(*batch, d, 1, generator=generator, dtype=dtype, device=device)
     mean = params.mean.expand(*batch, d) + (chol_cov @ z).squeeze(-1)
     return mean, covariance

@@ -63,7 +63,7 @@ from scipy.sparse.csgraph import connected_components
 from torch import Tensor
 
 from lfd_torch.errors import ShapeMismatchError
-from lfd_torch.gmm.model import GMM, InvalidGMMError, _gmm_from_dense_labels, check_samples
+from lfd_torch.gmm.model import NOT_GIVEN, GMM, InvalidGMMError, _gmm_from_dense_labels, check_samples
 from lfd_torch.gmm.niw import NIWPrior, niw_log_marginal_likelihood, niw_log_marginal_normalizer
 from lfd_torch.gmm.postprocess import merge_small_components
 from lfd_torch.utils import check_cost, check_float, check_generator, check_int
@@ -342,6 +342,27 @@ def default_length_scale(x: Tensor) -> float:
     return LENGTH_SCALE_FACTOR * rms if rms > 0 else 1.0
 
 
+def check_pcgmm_hyperparameters(
+    *, length_scale: object, alpha: object, kappa0: object, nu0_offset: object, psi_scale: object, n_iter: object,
+    min_cluster_size: object, max_points: object, reg_covar: object = NOT_GIVEN,
+) -> None:  # fmt: skip
+    """The checks of :func:`pcgmm_labels` / :func:`fit_pcgmm` on their hyperparameters, without the data (also run
+    by :class:`~lfd_torch.gmm.PCGMMFitter` at construction); ``reg_covar`` is checked when given.
+
+    Raises:
+        InvalidGMMError: naming the first hyperparameter of the wrong type or out of range.
+    """
+    if reg_covar is not NOT_GIVEN:
+        check_float(reg_covar, "reg_covar", low=0.0, error=InvalidGMMError)
+    for name, v in (("alpha", alpha), ("kappa0", kappa0), ("psi_scale", psi_scale), ("nu0_offset", nu0_offset)):
+        check_float(v, name, low=0.0, low_open=True, error=InvalidGMMError)
+    check_int(n_iter, "n_iter", low=1, high=MAX_SWEEPS, error=InvalidGMMError)
+    check_int(max_points, "max_points", low=MIN_SAMPLES_PCGMM, high=MAX_SAMPLER_POINTS, allow_none=True,
+              error=InvalidGMMError)  # fmt: skip
+    check_int(min_cluster_size, "min_cluster_size", low=1, allow_none=True, error=InvalidGMMError)
+    check_float(length_scale, "length_scale", low=0.0, low_open=True, allow_none=True, error=InvalidGMMError)
+
+
 def pcgmm_labels(
     x: Tensor,
     x_dot: Tensor,
@@ -382,13 +403,9 @@ def pcgmm_labels(
         raise ShapeMismatchError("x_dot (N, d) velocities are required, got None")
     check_samples(x, x_dot, min_samples=MIN_SAMPLES_PCGMM)
     check_generator(generator, where="PC-GMM")
-    for name, v in (("alpha", alpha), ("kappa0", kappa0), ("psi_scale", psi_scale), ("nu0_offset", nu0_offset)):
-        check_float(v, name, low=0.0, low_open=True, error=InvalidGMMError)
-    check_int(n_iter, "n_iter", low=1, high=MAX_SWEEPS, error=InvalidGMMError)
-    check_int(max_points, "max_points", low=MIN_SAMPLES_PCGMM, high=MAX_SAMPLER_POINTS, allow_none=True,
-              error=InvalidGMMError)  # fmt: skip
-    check_int(min_cluster_size, "min_cluster_size", low=1, allow_none=True, error=InvalidGMMError)
-    check_float(length_scale, "length_scale", low=0.0, low_open=True, allow_none=True, error=InvalidGMMError)
+    check_pcgmm_hyperparameters(length_scale=length_scale, alpha=alpha, kappa0=kappa0, nu0_offset=nu0_offset,
+                                psi_scale=psi_scale, n_iter=n_iter, min_cluster_size=min_cluster_size,
+                                max_points=max_points)  # fmt: skip
     n_kept = x.shape[0] if max_points is None else min(x.shape[0], max_points)
     check_cost("max_points", float(n_kept) ** 2, float(MAX_SAMPLER_POINTS) ** 2, "pairwise similarities")
     N, d = x.shape

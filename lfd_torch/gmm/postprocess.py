@@ -8,8 +8,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import NonFiniteError, ShapeMismatchError
-from lfd_torch.gmm.model import GMM, InvalidGMMError
+from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError
+from lfd_torch.gmm.model import GMM, InvalidGMMError, check_samples
+from lfd_torch.utils import check_float, check_int, real_array
 
 __all__ = ["order_by_attractor", "regularize_covariances", "merge_small_components"]
 
@@ -25,7 +26,16 @@ def order_by_attractor(gmm: GMM, attractor: Tensor) -> GMM:
 
     Returns:
         A new :class:`GMM` whose component 0 is the closest to g.
+
+    Raises:
+        InvalidArgumentError: ``gmm`` is not a GMM. ShapeMismatchError: ``attractor`` is not a real (d,) vector.
+        NonFiniteError: ``attractor`` holds NaN or Inf.
     """
+    _check_gmm(gmm)
+    if not isinstance(attractor, Tensor):
+        attractor = real_array(attractor, "attractor")
+    elif attractor.is_complex():
+        raise ShapeMismatchError(f"attractor must hold real numbers, got {attractor.dtype}")
     g = torch.as_tensor(attractor, dtype=gmm.dtype, device=gmm.device)
     if g.shape != (gmm.dim,):
         raise ShapeMismatchError(f"attractor must have shape ({gmm.dim},), got {tuple(g.shape)}")
@@ -34,6 +44,11 @@ def order_by_attractor(gmm: GMM, attractor: Tensor) -> GMM:
     dist = torch.linalg.vector_norm(gmm.means - g, dim=-1)
     order = torch.sort(dist, stable=True).indices
     return GMM(gmm.weights[order], gmm.means[order], gmm.covariances[order])
+
+
+def _check_gmm(gmm: object) -> None:
+    if not isinstance(gmm, GMM):
+        raise InvalidArgumentError(f"gmm must be a GMM, got {type(gmm).__name__}")
 
 
 def regularize_covariances(gmm: GMM, min_eig_ratio: float = 1e-2, *, min_eig: float = 0.0) -> GMM:
@@ -51,11 +66,14 @@ def regularize_covariances(gmm: GMM, min_eig_ratio: float = 1e-2, *, min_eig: fl
 
     Returns:
         A new :class:`GMM`.
+
+    Raises:
+        InvalidGMMError: ``min_eig_ratio`` outside [0, 1], ``min_eig`` negative or not finite (naming it).
+        InvalidArgumentError: ``gmm`` is not a GMM.
     """
-    if not 0.0 <= float(min_eig_ratio) <= 1.0:
-        raise InvalidGMMError(f"min_eig_ratio must lie in [0, 1], got {min_eig_ratio}")
-    if not float(min_eig) >= 0.0:
-        raise InvalidGMMError(f"min_eig must be >= 0, got {min_eig}")
+    _check_gmm(gmm)
+    min_eig_ratio = check_float(min_eig_ratio, "min_eig_ratio", low=0.0, high=1.0, error=InvalidGMMError)
+    min_eig = check_float(min_eig, "min_eig", low=0.0, error=InvalidGMMError)
     evals, evecs = torch.linalg.eigh(gmm.covariances)
     floor = torch.clamp_min(min_eig_ratio * evals[..., -1:], float(min_eig))
     evals = torch.maximum(evals, floor)
@@ -76,7 +94,24 @@ def merge_small_components(x: Tensor, labels: Tensor, min_size: int) -> Tensor:
 
     Returns:
         (N,) int64 labels, densely renumbered 0..K'-1 in increasing order of the kept clusters' labels.
+
+    Raises:
+        ShapeMismatchError, TooFewSamplesError, NonFiniteError: ``x`` is not a finite (N, d) tensor with N >= 1, or
+            ``labels`` is not an integer (N,) tensor on x's device.
+        InvalidArgumentError: a negative label, or ``min_size`` not an integer >= 1.
     """
+    check_samples(x, min_samples=1)
+    if not isinstance(labels, Tensor) or labels.is_floating_point() or labels.is_complex() \
+            or labels.dtype == torch.bool:
+        what = labels.dtype if isinstance(labels, Tensor) else type(labels).__name__
+        raise ShapeMismatchError(f"labels must be an integer tensor of shape ({x.shape[0]},), got {what}")
+    if labels.shape != (x.shape[0],) or labels.device != x.device:
+        raise ShapeMismatchError(f"labels must have shape ({x.shape[0]},) on {x.device} (one per row of x), got "
+                                 f"{tuple(labels.shape)} on {labels.device}")  # fmt: skip
+    if bool((labels < 0).any()):
+        raise InvalidArgumentError(f"labels must be >= 0, got {int(labels.min())}")
+    check_int(min_size, "min_size", low=1)
+    labels = labels.long()
     K = int(labels.max()) + 1
     counts = torch.bincount(labels, minlength=K)
     keep = counts >= min_size

@@ -510,15 +510,13 @@ class Segmentation:
         Raises:
             StoreError: ``path`` is not a str or os.PathLike (naming it), or writing failed.
         """
-        from lfd_torch.store import atomic_path
+        from lfd_torch.store import atomic_save
         from lfd_torch.store.checksum import DIGEST_KEY, payload_digest
 
         path = check_path(path, "path", error=StoreError)
         state = self.state_dict()
         state[DIGEST_KEY] = payload_digest(state)
-        with atomic_path(path) as tmp:
-            torch.save(state, tmp)
-        return path
+        return atomic_save(path, lambda tmp: torch.save(state, tmp), what="segmentation file")
 
     @classmethod
     def load(cls, path: str | Path) -> Segmentation:

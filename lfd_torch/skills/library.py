@@ -41,7 +41,7 @@ from lfd_torch.ds import StablePrimitive, fit_lpvds, load_primitive
 from lfd_torch.errors import InvalidArgumentError, LfdError, ShapeMismatchError, StoreError, UnknownNameError
 from lfd_torch.modulation import reference_entropy
 from lfd_torch.segmentation import Segmentation
-from lfd_torch.store import atomic_path
+from lfd_torch.store import atomic_save
 from lfd_torch.utils import check_choice, check_float, check_path, float_dtype, resolve_device
 
 __all__ = ["LIBRARY_SCHEMA", "Skill", "SkillLibrary", "default_fitter"]
@@ -313,8 +313,7 @@ class SkillLibrary:
         files: dict[str, str] = {}
 
         def put(name: str, obj: Any) -> None:
-            with atomic_path(root / name) as tmp:
-                torch.save(obj, tmp)
+            atomic_save(root / name, lambda tmp: torch.save(obj, tmp), what="library file")
             files[name] = _sha256(root / name)
 
         self.segmentation.save(root / "segmentation.pt")
@@ -346,8 +345,7 @@ class SkillLibrary:
         }
         manifest["digest"] = _manifest_digest(manifest)
         text = json.dumps(manifest, indent=2, sort_keys=True, allow_nan=True)
-        with atomic_path(root / _MANIFEST) as tmp:
-            tmp.write_text(text)
+        atomic_save(root / _MANIFEST, lambda tmp: tmp.write_text(text), what="library manifest")
         return manifest
 
     @classmethod

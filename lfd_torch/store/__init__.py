@@ -20,7 +20,7 @@ Every file is written atomically (:func:`atomic_path`, :func:`atomic_write`): re
 The command line ``python -m lfd_torch.store.collect SWEEP_DIR --out FILE`` wraps :func:`collect`.
 """
 
-from lfd_torch.store.atomic import atomic_path, atomic_write, is_temp_file
+from lfd_torch.store.atomic import atomic_path, atomic_save, atomic_write, is_temp_file
 from lfd_torch.store.manifest import (
     DEFAULT_HASH_EXCLUDE,
     MANIFEST_FIELDS,

@@ -20,9 +20,10 @@ import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from lfd_torch.errors import StoreError
+from lfd_torch.errors import InvalidArgumentError, StoreError
+from lfd_torch.utils import check_path
 
-__all__ = ["atomic_path", "atomic_write", "is_temp_file", "remove_stale_temps", "TEMP_SUFFIX"]
+__all__ = ["atomic_path", "atomic_save", "atomic_write", "is_temp_file", "remove_stale_temps", "TEMP_SUFFIX"]
 
 TEMP_SUFFIX = ".tmp"
 
@@ -124,11 +125,11 @@ def atomic_path(path: str | os.PathLike[str], *, fsync: bool = True) -> Iterator
         The temporary path, in the destination's directory. The body must create it.
 
     Raises:
-        StoreError: the body returned without creating the temporary file, or the rename failed.
-            Any exception raised by the body propagates unchanged; in every error case the temporary file
-            is removed and the destination keeps its previous content (or stays absent).
+        StoreError: ``path`` is not a file path, its folder cannot be created, the body returned without creating
+            the temporary file, or the rename failed. Any exception raised by the body propagates unchanged; in every
+            error case the temporary file is removed and the destination keeps its previous content (or stays absent).
     """
-    final = Path(path)
+    final = check_path(path, "path", error=StoreError)
     if final.name in ("", ".", ".."):
         raise StoreError(f"not a file path: {str(path)!r}")
     try:
@@ -169,9 +170,28 @@ def atomic_write(
         The destination path.
 
     Raises:
-        StoreError: the writer did not create the file, or the rename failed. Exceptions raised by ``writer``
-            propagate unchanged; the destination is then left as it was.
+        StoreError: ``path`` is not a file path, the writer did not create the file, or the rename failed. Exceptions
+            raised by ``writer`` propagate unchanged; the destination is then left as it was.
+        InvalidArgumentError: ``writer`` is not callable.
     """
+    if not callable(writer):
+        raise InvalidArgumentError(f"writer must be a callable writer(tmp_path), got {type(writer).__name__}")
     with atomic_path(path, fsync=fsync) as tmp:
         writer(tmp)
     return Path(path)
+
+
+def atomic_save(path: str | os.PathLike[str], writer: Callable[[Path], object], *, what: str = "file") -> Path:
+    """:func:`atomic_write` for the package's own files: an I/O failure of ``writer`` (an unwritable folder, a full
+    disk; ``torch.save`` reports these as RuntimeError) is a StoreError naming the file ``what`` it was to be.
+
+    Raises:
+        StoreError: as :func:`atomic_write`, or the writer's OSError / RuntimeError. Other exceptions of ``writer``
+            propagate unchanged. In every error case the destination keeps its previous content (or stays absent).
+    """
+    try:
+        return atomic_write(path, writer)
+    except StoreError:
+        raise
+    except (OSError, RuntimeError) as exc:
+        raise StoreError(f"cannot write {what} {path}: {type(exc).__name__}: {exc}") from exc

@@ -20,9 +20,10 @@ A Hydra multirun leaves one ``results.parquet`` per job (``multirun/<date>/<time
 
 from __future__ import annotations
 
+import contextlib
 import os
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -32,14 +33,15 @@ import pyarrow.parquet as pq
 
 from lfd_torch.errors import StoreError
 from lfd_torch.utils import check_path
-from lfd_torch.store.atomic import atomic_write, is_temp_file
+from lfd_torch.store.atomic import atomic_path, is_temp_file
 from lfd_torch.store.table import (
     KEY_COLUMNS,
     REQUIRED_COLUMNS,
+    WRITTEN_AT_METADATA_KEY,
+    _to_arrow,
     read_manifest,
     read_table,
     validate_table,
-    write_parquet_atomic,
     written_at_ns,
 )
 
@@ -62,9 +64,10 @@ def find_parts(root: str | os.PathLike[str], pattern: str = "**/*.parquet") -> l
         pattern: glob pattern relative to ``root``.
 
     Raises:
-        StoreError: ``root`` does not exist.
+        StoreError: ``root`` does not exist, or ``pattern`` is not a non-empty relative glob.
     """
     root = check_path(root, "path_or_dir", error=StoreError)
+    check_pattern(pattern)
     if root.is_file():
         return [root]
     if not root.is_dir():
@@ -76,6 +79,50 @@ def find_parts(root: str | os.PathLike[str], pattern: str = "**/*.parquet") -> l
             continue
         parts.append(path)
     return sorted(parts)
+
+
+def check_pattern(pattern: object) -> str:
+    """``pattern`` if it is a glob that :meth:`pathlib.Path.glob` accepts: a non-empty relative pattern.
+
+    Raises:
+        StoreError: naming ``pattern`` and what is wrong.
+    """
+    if not isinstance(pattern, str) or not pattern.strip():
+        raise StoreError(f"pattern must be a non-empty glob relative to the sweep folder (e.g. '**/*.parquet'), got "
+                         f"{pattern!r}")  # fmt: skip
+    if os.path.isabs(pattern) or Path(pattern).anchor:
+        raise StoreError(f"pattern must be relative to the sweep folder (e.g. '**/*.parquet'), got the absolute "
+                         f"{pattern!r}")  # fmt: skip
+    return pattern
+
+
+def _output_paths(save_to: object) -> list[Path]:
+    """The ``save_to`` files of :func:`collect`, checked before anything is read or written: file paths with a
+    supported suffix, whose folder exists (or can be created) and is writable."""
+    if save_to is None:
+        return []
+    if isinstance(save_to, (str, os.PathLike)):
+        items: list[object] = [save_to]
+    elif isinstance(save_to, Iterable) and not isinstance(save_to, bytes):
+        items = list(save_to)
+    else:
+        raise StoreError(f"save_to must be a file path or a sequence of file paths, got {save_to!r} "
+                         f"({type(save_to).__name__})")  # fmt: skip
+    outputs = [check_path(p, "save_to", error=StoreError) for p in items]
+    bad = [p for p in outputs if p.suffix.lower() not in _SUFFIXES]
+    if bad:
+        raise StoreError(f"cannot save to {[str(p) for p in bad]}: supported suffixes are {list(_SUFFIXES)}")
+    for path in outputs:
+        if path.is_dir():
+            raise StoreError(f"cannot save to {path}: it is a directory")
+        folder = path.parent
+        while not folder.exists() and folder != folder.parent:  # the nearest folder that exists
+            folder = folder.parent
+        if not folder.is_dir():
+            raise StoreError(f"cannot save to {path}: {folder} is a file, not a folder")
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise StoreError(f"cannot save to {path}: no permission to write in {folder}")
+    return outputs
 
 
 def _read_part(path: Path) -> pd.DataFrame | None:
@@ -92,14 +139,32 @@ def _read_part(path: Path) -> pd.DataFrame | None:
     return frame
 
 
-def _save(frame: pd.DataFrame, path: Path) -> None:
-    suffix = path.suffix.lower()
-    if suffix == ".parquet":
-        write_parquet_atomic(frame, path)
-    elif suffix == ".csv":
-        atomic_write(path, lambda tmp: frame.to_csv(tmp, index=False))
-    else:
-        raise StoreError(f"cannot save to {path}: supported suffixes are {list(_SUFFIXES)}")
+def _save_all(frame: pd.DataFrame, paths: Sequence[Path]) -> None:
+    """Write ``frame`` to every file of ``paths`` (.parquet or .csv), all or none: each goes to a temporary file
+    first, and the files are renamed into place only once every one of them is complete. A failure leaves every
+    destination as it was.
+
+    Raises:
+        StoreError: naming the file that could not be written.
+    """
+    import time
+
+    table = None
+    if any(p.suffix.lower() == ".parquet" for p in paths):
+        validate_table(frame, where=str(paths[0]))
+        table = _to_arrow(frame, {WRITTEN_AT_METADATA_KEY: str(time.time_ns()).encode()}, str(paths[0]))
+    with contextlib.ExitStack() as stack:  # renames on a clean exit, in reverse order; removes every temp on error
+        for path in paths:
+            try:
+                tmp = stack.enter_context(atomic_path(path))
+                if path.suffix.lower() == ".parquet":
+                    pq.write_table(table, tmp)
+                elif path.suffix.lower() == ".csv":
+                    frame.to_csv(tmp, index=False)
+                else:
+                    raise StoreError(f"cannot save to {path}: supported suffixes are {list(_SUFFIXES)}")
+            except (OSError, pa.ArrowException) as exc:
+                raise StoreError(f"cannot write {path}: {exc}") from exc
 
 
 def sweep_files(root: str | os.PathLike[str]) -> list[Path]:
@@ -157,13 +222,18 @@ def unfinished_jobs(root: str | os.PathLike[str], pattern: str = "**/*.parquet")
 def finished_part(path: str | os.PathLike[str], manifest: Mapping[str, Any]) -> pd.DataFrame | None:
     """The rows of a job that already ran with the same configuration, for resuming a sweep; else None.
 
+    Raises:
+        StoreError: ``path`` is not a file path or ``manifest`` is not a mapping (arguments, not the file's state).
+
     A job's part counts as finished when ``path`` is a valid results table (it is written atomically, as the
     job's last act) whose manifest has the same ``config_hash``, ``seed`` and ``git_sha`` as ``manifest`` (from
     :func:`~lfd_torch.store.run_manifest` of the job about to run). A missing, damaged or foreign file, or one from
     another configuration or commit, is not finished: the job runs and replaces it (a sweep resumed after a code
     change does not mix two versions of the code; a ``-dirty`` tree edited in between is not told apart).
     """
-    p = Path(path)
+    p = check_path(path, "path", error=StoreError)
+    if not isinstance(manifest, Mapping):
+        raise StoreError(f"manifest must be a mapping from run_manifest(cfg, seed), got {type(manifest).__name__}")
     if not p.is_file():
         return None
     try:
@@ -194,18 +264,17 @@ def collect(
         The merged table (default index). Empty, with the required columns, when no part is readable.
 
     Raises:
-        StoreError: the directory does not exist, or ``save_to`` has an unsupported suffix or cannot be
-            written; with ``save_to``, also when no part is readable (a published table is never replaced by an
+        StoreError: the directory does not exist, ``pattern`` is not a relative glob, or ``save_to`` is not a file
+            path (or a sequence of them), has an unsupported suffix or cannot be written (checked for every file
+            before anything is written; the files are then written all or none); with ``save_to``, also when no
+            part is readable (a published table is never replaced by an
             empty one) or the directory holds several sweeps (several ``multirun.yaml``).
 
     Warns:
         PartialSweepWarning: for each part skipped, and once if rows were resolved by recency.
     """
-    outputs = [] if save_to is None else [save_to] if isinstance(save_to, (str, os.PathLike)) else list(save_to)
-    outputs = [check_path(p, "save_to", error=StoreError) for p in outputs]
-    bad = [p for p in outputs if p.suffix.lower() not in _SUFFIXES]
-    if bad:
-        raise StoreError(f"cannot save to {[str(p) for p in bad]}: supported suffixes are {list(_SUFFIXES)}")
+    outputs = _output_paths(save_to)
+    check_pattern(pattern)
     exclude = {p.resolve() for p in outputs}
     parts = [p for p in find_parts(path_or_dir, pattern) if p.resolve() not in exclude]  # checks path_or_dir
     sweeps = sweep_files(path_or_dir)
@@ -257,8 +326,8 @@ def collect(
             raise StoreError(f"key column {column!r} mixes types across parts: {kinds}")
     merged = merged.sort_values(list(KEY_COLUMNS), kind="mergesort")[columns].reset_index(drop=True)
 
-    for path in outputs:
-        _save(merged, path)
+    if outputs:
+        _save_all(merged, outputs)
     return merged
 
 
@@ -270,7 +339,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ``--force``: a partial sweep never overwrites a published table.
 
     Returns:
-        The exit status (0 on success, 2 on a StoreError).
+        The exit status (0 on success, 2 on a StoreError). Invalid arguments (an empty or absolute ``--pattern``, an
+        ``--out`` with another suffix than .parquet/.csv) are usage errors: argparse prints them and exits with 2.
     """
     import argparse
     import sys
@@ -286,6 +356,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--force", action="store_true", help="write --out even if some jobs of the sweep have no rows")
     args = parser.parse_args(argv)
+    try:
+        check_pattern(args.pattern)
+    except StoreError as exc:
+        parser.error(f"--pattern: {exc}")
+    bad = [o for o in args.out or [] if Path(o).suffix.lower() not in _SUFFIXES]
+    if bad:
+        parser.error(f"--out: {', '.join(bad)}: supported suffixes are {', '.join(_SUFFIXES)}")
     if args.out and not args.force and Path(args.path).is_dir():
         missing = unfinished_jobs(args.path, args.pattern)
         if missing:  # a partial sweep must not overwrite a published table

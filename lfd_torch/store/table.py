@@ -83,8 +83,12 @@ def validate_table(frame: pd.DataFrame, *, where: str = "table") -> None:
         where: name used in error messages (e.g. a file path).
 
     Raises:
-        StoreError: naming the missing columns, the columns holding nulls, or a few duplicated keys.
+        StoreError: ``frame`` is not a DataFrame, or naming the missing columns, the columns holding nulls, or a few
+            duplicated keys.
     """
+    if not isinstance(frame, pd.DataFrame):
+        raise StoreError(f"{where}: a results table must be a pandas DataFrame, got {type(frame).__name__} (build "
+                         "one from row dicts with as_frame)")  # fmt: skip
     missing = [c for c in REQUIRED_COLUMNS if c not in frame.columns]
     if missing:
         raise StoreError(f"{where}: missing required column(s) {missing}; required: {list(REQUIRED_COLUMNS)}")
@@ -168,8 +172,9 @@ def write_table(
     Args:
         rows: a DataFrame or a list of row dicts, one row per (experiment, shape, method, fold, seed,
             trajectory) with metric columns beside (see the module docstring).
-        path: destination file, conventionally ``results.parquet`` in the job's output directory. Missing
-            parent directories are created; an existing file is replaced only once the new one is complete.
+        path: destination ``.parquet`` file (another extension is refused: the file is always Parquet),
+            conventionally ``results.parquet`` in the job's output directory. Missing parent directories are
+            created; an existing file is replaced only once the new one is complete.
         manifest: the run's :func:`run_manifest`. Provenance columns the rows lack are filled from it; the
             ones they have must agree with it. The whole manifest is also kept in the file's metadata.
             Without a manifest the rows must already carry the provenance columns.
@@ -178,10 +183,14 @@ def write_table(
         The destination path.
 
     Raises:
-        StoreError: missing required columns, null or duplicated keys, a disagreement with the manifest, a
-            column that Parquet cannot hold, or an I/O failure (the destination is then left unchanged).
+        StoreError: ``path`` not a ``.parquet`` file path, missing required columns, null or duplicated keys, a
+            disagreement with the manifest, a column that Parquet cannot hold, or an I/O failure (the destination is
+            then left unchanged).
     """
     path = check_path(path, "path", error=StoreError)
+    if path.suffix.lower() != ".parquet":
+        raise StoreError(f"path {str(path)!r} must end in .parquet: write_table writes Parquet (for a CSV copy use "
+                         "collect(..., save_to='....csv') or DataFrame.to_csv)")  # fmt: skip
     frame = as_frame(rows)
     metadata: dict[bytes, bytes] = {}
     if manifest is not None and not isinstance(manifest, Mapping):
@@ -229,8 +238,10 @@ def read_manifest(path: str | os.PathLike[str]) -> dict[str, Any] | None:
     """The run manifest stored with a results table, or None if it was written without one.
 
     Raises:
-        StoreError: the file is missing or unreadable, or its manifest is not a JSON object.
+        StoreError: ``path`` is not a file path, the file is missing or unreadable, or its manifest is not a JSON
+            object.
     """
+    path = check_path(path, "path", error=StoreError)
     raw = _schema_metadata(path).get(MANIFEST_METADATA_KEY)
     if raw is None:
         return None

@@ -17,17 +17,18 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from lfd_torch.data import Demos
-from lfd_torch.errors import StoreError
-from lfd_torch.store import atomic_path
+from lfd_torch.errors import InvalidArgumentError, StoreError
+from lfd_torch.store import atomic_save
 from lfd_torch.store.checksum import DIGEST_KEY, payload_digest, verify_digest
 from lfd_torch.store.paths import project_root
+from lfd_torch.utils import check_path
 
 __all__ = [
     "STATE_SCHEMA",
@@ -53,15 +54,19 @@ def save_state(state: Mapping[str, Any], path: str | os.PathLike[str]) -> Path:
     """Write ``state`` atomically with its content checksum; returns the path.
 
     Raises:
-        StoreError: ``state`` holds something that cannot be checksummed (not a tensor, number, str, list, dict).
+        StoreError: ``path`` is not a file path, ``state`` is not a mapping or holds something that cannot be
+            checksummed (not a tensor, number, str, list, dict), or the file cannot be written (a file where a
+            folder should be, no permission, disk full: the message names the file; nothing is left half-written
+            and an existing file keeps its content).
     """
-    path = Path(path)
+    path = check_path(path, "path", error=StoreError)
+    if not isinstance(state, Mapping):
+        raise StoreError(f"state must be a mapping (a dict of tensors, numbers, strings, lists), got "
+                         f"{type(state).__name__}")  # fmt: skip
     out = {k: v for k, v in state.items() if k != DIGEST_KEY}
     out[_SCHEMA_KEY] = STATE_SCHEMA
     out[DIGEST_KEY] = payload_digest(out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        torch.save(out, tmp)
+    atomic_save(path, lambda tmp: torch.save(out, tmp))
     return path
 
 
@@ -70,9 +75,9 @@ def load_state(path: str | os.PathLike[str]) -> dict[str, Any]:
 
     Raises:
         StoreError: the file is missing, unreadable, of another schema, or does not match its checksum (the message
-            names the file).
+            names the file), or ``path`` is not a file path.
     """
-    path = Path(path)
+    path = check_path(path, "path", error=StoreError)
     if not path.is_file():
         raise StoreError(f"stored file {path} is missing (run the publish preset that writes it: make results)")
     try:
@@ -115,7 +120,12 @@ def save_demos(demos: Demos, path: str | os.PathLike[str], *, velocities: bool =
     Args:
         velocities: store the velocities too; False halves the file, and :func:`load_demos` re-estimates them by
             central differences (for figures, which draw positions only).
+
+    Raises:
+        StoreError: ``demos`` is not a :class:`~lfd_torch.data.Demos`, or as :func:`save_state`.
     """
+    if not isinstance(demos, Demos):
+        raise StoreError(f"demos must be a lfd_torch.data.Demos, got {type(demos).__name__}")
     return save_state({"demos": _demos_state(demos, velocities), **extra}, path)
 
 
@@ -125,6 +135,7 @@ def load_demos(path: str | os.PathLike[str]) -> tuple[Demos, dict[str, Any]]:
     Raises:
         StoreError: as :func:`load_state`, or the file holds no demonstrations.
     """
+    path = check_path(path, "path", error=StoreError)
     state = load_state(path)
     if "demos" not in state:
         raise StoreError(f"stored file {path} holds no demonstrations")
@@ -136,22 +147,40 @@ def save_config(cfg: Any, path: str | os.PathLike[str], *, drop: tuple[str, ...]
     """Store a run's resolved configuration as JSON with its checksum.
 
     Args:
+        cfg: an OmegaConf ``DictConfig`` or a mapping.
         drop: top-level keys left out: by default Hydra's run-time node and ``paths`` (where this machine wrote,
-            not part of the experiment; readers find ``results/`` through :func:`results_dir`).
+            not part of the experiment; readers find ``results/`` through :func:`results_dir`). A single string is
+            one key.
+
+    Raises:
+        StoreError: ``cfg`` is not a mapping or holds values JSON cannot store, ``path`` is not a file path, or the
+            file cannot be written (the message names it; an existing file keeps its content).
+        InvalidArgumentError: ``drop`` is not a string or an iterable of strings.
     """
     from omegaconf import DictConfig, OmegaConf
 
-    data = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+    path = check_path(path, "path", error=StoreError)
+    if isinstance(drop, str):
+        drop = (drop,)
+    keys = tuple(drop) if isinstance(drop, Iterable) else None
+    if keys is None or not all(isinstance(k, str) for k in keys):
+        raise InvalidArgumentError(f"drop must be a key or a sequence of top-level keys (strings), got {drop!r}")
+    if isinstance(cfg, DictConfig):
+        data = OmegaConf.to_container(cfg, resolve=True)
+    elif isinstance(cfg, Mapping):
+        data = dict(cfg)
+    else:
+        raise StoreError(f"cfg must be a DictConfig or a mapping, got {type(cfg).__name__}")
     assert isinstance(data, dict)
-    for key in drop:
+    for key in keys:
         data.pop(key, None)
     doc = {"config": data, _SCHEMA_KEY: STATE_SCHEMA}
     doc[DIGEST_KEY] = payload_digest(doc)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(doc, indent=1, sort_keys=True, allow_nan=True)
-    with atomic_path(path) as tmp:
-        tmp.write_text(text + "\n")
+    try:
+        text = json.dumps(doc, indent=1, sort_keys=True, allow_nan=True)
+    except (TypeError, ValueError) as exc:
+        raise StoreError(f"cannot store the configuration in {path} as JSON: {exc}") from exc
+    atomic_save(path, lambda tmp: tmp.write_text(text + "\n"))
     return path
 
 
@@ -159,11 +188,12 @@ def load_config(path: str | os.PathLike[str]) -> Any:
     """The configuration of a :func:`save_config` file, as an OmegaConf ``DictConfig``.
 
     Raises:
-        StoreError: the file is missing, not JSON, or does not match its checksum (the message names it).
+        StoreError: the file is missing, not JSON, or does not match its checksum (the message names it), or
+            ``path`` is not a file path.
     """
     from omegaconf import OmegaConf
 
-    path = Path(path)
+    path = check_path(path, "path", error=StoreError)
     if not path.is_file():
         raise StoreError(f"stored configuration {path} is missing (run the publish preset that writes it)")
     try:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -29,9 +29,13 @@ from matplotlib.lines import Line2D
 from lfd_torch.errors import PlotError, UnknownNameError
 from lfd_torch.store.atomic import atomic_write
 from lfd_torch.store.table import KEY_COLUMNS, PROVENANCE_COLUMNS
-from lfd_torch.utils import check_path
+from lfd_torch.utils import check_float, check_path
 
-__all__ = ["violin", "violin_grid", "save_figure", "metric_columns", "PlotError", "MEAN_MARKER_GID"]
+__all__ = ["violin", "violin_grid", "save_figure", "metric_columns", "PlotError", "MEAN_MARKER_GID", "MAX_DPI"]
+
+#: Largest accepted ``dpi``: 2400 dots per inch (a 5 x 3.5 inch figure is then 12000 x 8400 pixels, 400 MB of
+#: RGBA); larger values only exhaust memory.
+MAX_DPI = 2400.0
 
 #: ``gid`` of the scatter artist that marks the group means (one point per violin).
 MEAN_MARKER_GID = "lfd_torch.mean"
@@ -68,8 +72,20 @@ def _load(table: pd.DataFrame | str | os.PathLike[str]) -> pd.DataFrame:
 
 def _check_metric(table: pd.DataFrame, metric: str) -> None:
     valid = metric_columns(table)
-    if metric not in valid:
-        raise UnknownNameError("metric", metric, valid)
+    if metric in valid:
+        return
+    if isinstance(metric, str) and metric not in _NON_METRIC_COLUMNS and metric in table.columns:
+        n = int((table.columns == metric).sum())
+        if n > 1:
+            raise PlotError(f"metric column {metric!r} appears {n} times in the table; drop or rename the duplicates")
+        dtype = table[metric].dtype
+        raise PlotError(f"metric column {metric!r} is not numeric (dtype {dtype}); convert it first, e.g. with "
+                        f"pd.to_numeric (valid metrics: {', '.join(valid) or 'none'})")  # fmt: skip
+    raise UnknownNameError("metric", metric, valid)
+
+
+def _check_dpi(dpi: object) -> float:
+    return check_float(dpi, "dpi", low=0.0, low_open=True, high=MAX_DPI, error=PlotError)
 
 
 def _check_column(table: pd.DataFrame, column: str, role: str) -> None:
@@ -77,9 +93,16 @@ def _check_column(table: pd.DataFrame, column: str, role: str) -> None:
         raise UnknownNameError(f"column for {role}", column, [str(c) for c in table.columns])
 
 
-def _levels(values: pd.Series, given: Sequence[Any] | None) -> list[Any]:
+def _levels(values: pd.Series, given: Sequence[Any] | None, name: str = "order") -> list[Any]:
     if given is not None:
-        return list(given)
+        if isinstance(given, (str, bytes)) or not isinstance(given, Iterable):
+            raise PlotError(f"{name} must be a sequence of levels (e.g. a list of method names), got {given!r}")
+        levels = list(given)
+        present = list(pd.unique(values.dropna()))
+        if not any(level in present for level in levels):
+            shown = ", ".join(str(v) for v in levels[:3]) + (" ..." if len(levels) > 3 else "")
+            raise UnknownNameError(f"{name} level(s)", shown, [str(v) for v in present])
+        return levels
     if isinstance(values.dtype, pd.CategoricalDtype):
         present = set(values.dropna().unique())
         return [c for c in values.cat.categories if c in present]
@@ -100,16 +123,18 @@ def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 200) ->
     Args:
         fig: the figure.
         path: destination, e.g. ``results/figures/fig9.pdf`` (``.png``, ``.pdf``, ``.svg``, ...).
-        dpi: resolution of raster formats (dots per inch).
+        dpi: resolution of raster formats (dots per inch), in (0, :data:`MAX_DPI` = 2400].
 
     Returns:
         The destination path.
 
     Raises:
-        PlotError: unknown extension (checked before anything is written).
+        PlotError: unknown extension, or ``dpi`` not a number in (0, 2400] (checked before anything is written).
+        OSError: the file cannot be written (raised as is; the destination keeps its previous content).
     """
     path = check_path(path, "path", error=PlotError)
     fmt = _check_format(path)
+    dpi = _check_dpi(dpi)
     # Reproducible PDFs: no creation date embedded.
     metadata = {"CreationDate": None} if fmt == "pdf" else None
     return atomic_write(
@@ -173,7 +198,7 @@ def violin(
         split: draw the two hue levels as the halves of one violin. Default: True when ``hue`` has exactly two
             levels (and differs from ``by``). True with another number of hue levels is a PlotError.
         order: ``by`` levels, left to right (default: order of first appearance; levels without data leave
-            an empty slot).
+            an empty slot; at least one must be present, a string is not a sequence of levels).
         hue_order: ``hue`` levels (default: order of first appearance).
         ax: axes to draw into; default: a new figure on the Agg canvas.
         path: if given, save the figure there, atomically; the format follows the extension (.png, .pdf, ...).
@@ -186,16 +211,18 @@ def violin(
         palette: seaborn palette for the hue (or ``by``) levels.
         title: axes title (default none); ``ylabel``: value-axis label (default: ``metric``).
         figsize: size of a new figure, inches (ignored with ``ax``).
-        dpi: resolution of raster files, dots per inch.
+        dpi: resolution of raster files, dots per inch, in (0, :data:`MAX_DPI`].
         legend: draw the legend (hue levels and the mean marker).
 
     Returns:
         The figure holding the plot.
 
     Raises:
-        UnknownNameError: ``metric`` is not a numeric non-key column of the table, or ``by``/``hue`` is not a
-            column (the message lists the valid names).
-        PlotError: no finite value of ``metric`` to plot, an impossible ``split``, or an unknown file format.
+        UnknownNameError: ``metric`` is not a numeric non-key column of the table, ``by``/``hue`` is not a
+            column, or none of the ``order`` (``hue_order``) levels is in the data (the message lists the valid
+            names).
+        PlotError: no finite value of ``metric`` to plot, ``metric`` a column that is not numeric or duplicated,
+            ``order`` a string, an impossible ``split``, an unknown file format or a ``dpi`` out of range.
         StoreError: ``table`` is a path that cannot be read.
 
     Warns:
@@ -205,6 +232,7 @@ def violin(
     frame = _load(table)
     if path is not None:
         _check_format(Path(path))
+        _check_dpi(dpi)
     data, n_dropped = _prepare(frame, metric, by, hue)
     if data.empty:
         raise PlotError(f"no finite values of {metric!r} to plot ({n_dropped} rows, none finite)")
@@ -217,7 +245,7 @@ def violin(
 
     order = _levels(data[by], order)
     use_hue = hue is not None and hue != by
-    hue_levels = _levels(data[hue], hue_order) if use_hue else []
+    hue_levels = _levels(data[hue], hue_order, "hue_order") if use_hue else []
     if split is None:
         split = use_hue and len(hue_levels) == 2
     if split and len(hue_levels) != 2:
@@ -351,6 +379,7 @@ def violin_grid(
         raise PlotError(f"{len(titles)} titles for {len(metrics)} metrics")
     if path is not None:
         _check_format(Path(path))
+        _check_dpi(dpi)
     _check_column(frame, by, "by")
     if hue is not None:
         _check_column(frame, hue, "hue")
@@ -362,7 +391,7 @@ def violin_grid(
 
     order = _levels(frame[by], order)
     if hue is not None and hue != by:
-        hue_order = _levels(frame[hue], hue_order)
+        hue_order = _levels(frame[hue], hue_order, "hue_order")
     fig, axes = _new_figure((panel_size[0] * len(metrics), panel_size[1]), len(metrics))
     for i, (metric, ax) in enumerate(zip(metrics, axes)):
         violin(
