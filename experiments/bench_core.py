@@ -1,6 +1,6 @@
 """Benchmark of the foundation's batched kernels (not a test; prints medians).
 
-    python experiments/bench_core.py [--repeats 5] [--threads 1]
+    python experiments/bench_core.py [--repeats 5] [--threads 1] [--json results/tables/bench_core.json]
 
 1. E1-E3 over all 210 LASA demonstrations (30 shapes x 7 demos x 1000 samples).
 2. Squared-cost DTW of 210 pairs of 1000-sample trajectories: ours (batched torch) vs dtaidistance's C code.
@@ -15,6 +15,7 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse
+import json
 import statistics
 import time
 from collections.abc import Callable
@@ -43,7 +44,7 @@ def all_lasa() -> Demos:
     return Demos.concat([load_lasa(name) for name in LASA_NAMES])
 
 
-def bench_metrics(demos: Demos, repeats: int) -> None:
+def bench_metrics(demos: Demos, repeats: int) -> dict[str, float]:
     x, v, mask = demos.positions, demos.velocities, demos.mask
     # a stand-in model output: central-difference velocities and a shifted copy of the path as the "rollout"
     g = torch.Generator().manual_seed(0)
@@ -56,9 +57,10 @@ def bench_metrics(demos: Demos, repeats: int) -> None:
     t, (e1, e2, e3) = median_time(run, repeats)
     print(f"[metrics] E1+E2+E3 over {x.shape[0]} demos x {x.shape[1]} samples (float64): median {t * 1e3:.1f} ms "
           f"(goal <= 200 ms); means E1={e1.mean():.3f} E2={e2.mean():.4f} E3={e3.mean():.3f}")  # fmt: skip
+    return {"metrics_s": t, "n_demos": x.shape[0], "n_samples": x.shape[1]}
 
 
-def bench_dtw(demos: Demos, repeats: int) -> None:
+def bench_dtw(demos: Demos, repeats: int) -> dict[str, float]:
     from dtaidistance import dtw_ndim
 
     a = demos.positions
@@ -74,6 +76,8 @@ def bench_dtw(demos: Demos, repeats: int) -> None:
           f"{t_ref:.3f} s, ratio {t_ours / t_ref:.2f}x (goal <= 3x); max |diff| {diff:.2e}")  # fmt: skip
     t_euc, _ = median_time(lambda: dtw_distance(a, b), repeats)
     print(f"[dtw] same pairs, Euclidean local cost (DTWD of the LPV-DS literature): ours {t_euc:.3f} s")
+    return {"dtw_squared_s": t_ours, "dtw_dtaidistance_s": t_ref, "dtw_ratio": t_ours / t_ref,
+            "dtw_max_abs_diff": float(diff), "dtw_euclidean_s": t_euc}  # fmt: skip
 
 
 def linear_mixture(n_components: int, d: int, generator: torch.Generator, dtype: torch.dtype) -> tuple[LPVDS, Tensor]:
@@ -96,7 +100,7 @@ def linear_mixture(n_components: int, d: int, generator: torch.Generator, dtype:
     return model, model.attractor
 
 
-def bench_rollout(repeats: int, n_starts: int = 10_000, n_steps: int = 2_000) -> None:
+def bench_rollout(repeats: int, n_starts: int = 10_000, n_steps: int = 2_000) -> dict[str, float]:
     gen = torch.Generator().manual_seed(1)
     field, g = linear_mixture(8, 2, gen, torch.float32)
     x0 = 40 * torch.rand(n_starts, 2, generator=gen, dtype=torch.float32) - 20
@@ -128,6 +132,9 @@ def bench_rollout(repeats: int, n_starts: int = 10_000, n_steps: int = 2_000) ->
           f"{t_eager_full / t_batched:.0f}x; with stopping at 1e-3: {t_stop:.3f} s, converged "
           f"{int(res_stop.converged.sum())}/{n_starts}, mean length {res_stop.lengths.float().mean():.0f}; "
           f"first-start max |batched - eager| {float((res.positions[0, :int(res.lengths[0])] - eager_out[0, :int(res.lengths[0])]).abs().max()):.1e}")  # fmt: skip
+    return {"rollout_s": t_batched, "eager_ms_per_start": t_eager / n_eager * 1e3, "eager_extrapolated_s": t_eager_full,
+            "rollout_ratio": t_eager_full / t_batched, "rollout_stop_s": t_stop,
+            "rollout_stop_mean_length": float(res_stop.lengths.float().mean())}  # fmt: skip
 
 
 def main() -> None:
@@ -135,15 +142,24 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--only", choices=["metrics", "dtw", "rollout"], default=None)
+    parser.add_argument("--json", default=None, help="also write the medians (s) to this JSON file")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     demos = all_lasa()
+    out: dict[str, float] = {}
     if args.only in (None, "metrics"):
-        bench_metrics(demos, args.repeats)
+        out |= bench_metrics(demos, args.repeats)
     if args.only in (None, "dtw"):
-        bench_dtw(demos, args.repeats)
+        out |= bench_dtw(demos, args.repeats)
     if args.only in (None, "rollout"):
-        bench_rollout(args.repeats)
+        out |= bench_rollout(args.repeats)
+    if args.json:
+        from lfd_torch.store import atomic_save
+        from lfd_torch.store.manifest import git_sha
+
+        record = {"bench_core": out, "provenance": {"git_sha": git_sha(), "repeats": args.repeats,
+                                                   "threads": args.threads, "load_average": os.getloadavg()[0]}}
+        atomic_save(args.json, lambda tmp: tmp.write_text(json.dumps(record, indent=2) + "\n"), what="benchmark table")
 
 
 if __name__ == "__main__":
