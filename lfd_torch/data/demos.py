@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from lfd_torch.data.finite_difference import finite_difference
+from lfd_torch.data.finite_difference import finite_difference_unchecked
 from lfd_torch.utils import check_float, float_dtype, resolve_device, resolve_dtype
 from lfd_torch.errors import (
     InvalidArgumentError,
@@ -196,7 +196,7 @@ class Demos:
         Tm = _pad_edge(tms, T)
         if velocities is None:
             cls._check_values(P, Tm, lengths)  # clear errors before differentiating
-            V = finite_difference(P, Tm, lengths, scheme=velocity_scheme)
+            V = finite_difference_unchecked(P, Tm, lengths, scheme=velocity_scheme)
         else:
             if len(velocities) != len(pos):
                 raise ShapeMismatchError(f"{len(velocities)} velocity arrays for {len(pos)} demonstrations")

@@ -19,7 +19,7 @@ from lfd_torch.errors import (
 )
 from lfd_torch.utils import check_tensor
 
-__all__ = ["finite_difference", "SCHEMES"]
+__all__ = ["finite_difference", "finite_difference_unchecked", "SCHEMES"]
 
 SCHEMES = ("central", "forward", "backward")
 
@@ -48,9 +48,19 @@ def finite_difference(positions: Tensor, times: Tensor, lengths: Tensor, scheme:
         NonFiniteError: NaN or Inf in a valid position or time.
         NonIncreasingTimeError: times not strictly increasing over a row's valid part.
     """
+    _check_inputs(positions, times, lengths)
+    return finite_difference_unchecked(positions, times, lengths, scheme)
+
+
+def finite_difference_unchecked(positions: Tensor, times: Tensor, lengths: Tensor, scheme: str = "central") -> Tensor:
+    """:func:`finite_difference` without its argument checks, for inputs the caller has validated (``Demos``,
+    the preprocessing steps): the checks scan every sample once more. ``scheme`` is still checked.
+
+    Raises:
+        UnknownNameError: an unknown ``scheme``.
+    """
     if scheme not in SCHEMES:
         raise UnknownNameError("finite-difference scheme", str(scheme), SCHEMES)
-    _check_inputs(positions, times, lengths)
     B, T, d = positions.shape
     lengths = lengths.to(device=positions.device)
     t = times.to(positions.dtype)

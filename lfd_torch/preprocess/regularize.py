@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from lfd_torch.data.demos import MIN_SAMPLES, Demos
-from lfd_torch.data.finite_difference import finite_difference
+from lfd_torch.data.finite_difference import finite_difference_unchecked
 from lfd_torch.errors import InvalidArgumentError, TooFewSamplesError, UnknownNameError
 from lfd_torch.utils import check_choice, check_cost, check_float, check_int
 
@@ -203,7 +203,7 @@ def resample(demos: Demos, n_samples: int, mode: str = "time") -> Demos:
     if mode == "arc_length":  # a still start is one point of the path: it keeps its first time stamp, as the end
         times[:, 0] = demos.times[:, 0]  # keeps its last (the interpolation takes the last sample of a flat run)
     lengths = torch.full((B,), n_samples, dtype=torch.long, device=demos.device)
-    velocities = finite_difference(positions, times, lengths)
+    velocities = finite_difference_unchecked(positions, times, lengths)  # from checked demos
     return Demos(positions, velocities, times, lengths, demos.attractor, demos.names)
 
 
@@ -297,7 +297,7 @@ def screen_dimensions(
 def estimate_velocities(demos: Demos, scheme: str = "central") -> Demos:
     """Replace the velocities by finite differences of the positions (see :func:`finite_difference`)."""
     _check_demos(demos)
-    return demos.replace(velocities=finite_difference(demos.positions, demos.times, demos.lengths, scheme))
+    return demos.replace(velocities=finite_difference_unchecked(demos.positions, demos.times, demos.lengths, scheme))
 
 
 def trim_still_tail(demos: Demos, position_tol: float, velocity_tol: float) -> Demos:
