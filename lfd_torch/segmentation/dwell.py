@@ -244,10 +244,30 @@ def dwell_evidence(prior: FieldPrior, c: Tensor, mask: Tensor, phase: Tensor,
     return torch.logsumexp(torch.stack(out), 0) - math.log(len(out))
 
 
+def _few_values_fallback(mask: Tensor, beta: Tensor, noise: Tensor) -> tuple[Tensor, Tensor]:
+    """(beta, noise) with a finite stand-in where the mask holds fewer than 2 dwell values.
+
+    The chains start from the sample mean and variance of c over the mask (delta = 0); with one value the variance
+    is undefined and with none the mean too (NaN: short sequences, or a ``min_length`` near half a sequence, leave
+    at most one grid point between the first and the last run's minimum duration). Then a non-finite mu is 0 (c is
+    a log ratio to the median) and a non-finite sigma^2 the prior's E[sigma^2] (:data:`_NOISE_MEAN`); with at most
+    one point in the mask the term hardly constrains the labelling either way, and the Gibbs step draws the
+    parameters from their (proper) NIG posterior from then on. Elsewhere ``beta`` and ``noise`` are returned as
+    given (selected, not recomputed: the result is bit for bit the same)."""
+    few = mask.sum() < 2  # a 0-d tensor: no host synchronisation in the sampler's sweeps
+    beta = torch.where(few & ~torch.isfinite(beta), torch.zeros_like(beta), beta)
+    noise = torch.where(few & ~torch.isfinite(noise), torch.full_like(noise, _NOISE_MEAN), noise)
+    return beta, noise
+
+
 def dwell_log_likelihood(c: Tensor, mask: Tensor, beta: Tensor, noise: Tensor) -> Tensor:
     """(B, N, T, 2) log N(c_t; mu + delta b, sigma^2) for b = 0 (inside a run) and b = 1 (first point of a run),
-    0 outside the mask; c (N, T) or (B, N, T), beta (B, 2) = (mu, delta), noise (B,) = sigma^2."""
+    0 outside the mask; c (N, T) or (B, N, T), beta (B, 2) = (mu, delta), noise (B,) = sigma^2.
+
+    Where the mask holds fewer than 2 values, a non-finite mu, delta or sigma^2 (the chains' start from the
+    sample mean and variance of c, undefined there) is replaced by a finite one (:func:`_few_values_fallback`)."""
     N, T = mask.shape
+    beta, noise = _few_values_fallback(mask, beta, noise)
     means = torch.stack([beta[:, 0], beta[:, 0] + beta[:, 1]], -1).unsqueeze(-1)  # (B, 2, 1)
     cov = noise.view(-1, 1, 1, 1).expand(-1, 2, 1, 1)
     ll = gaussian_log_density(c.reshape(-1, N * T, 1), means, cov)  # (B, N T, 2)
@@ -256,7 +276,9 @@ def dwell_log_likelihood(c: Tensor, mask: Tensor, beta: Tensor, noise: Tensor) -
 
 def dwell_log_prob(prior: FieldPrior, c: Tensor, mask: Tensor, phase: Tensor, beta: Tensor, noise: Tensor) -> Tensor:
     """(B,) log p(c | b, mu, delta, sigma^2) + log NIG(mu, delta, sigma^2): the dwell part of the joint log
-    probability of B chains with phases (B, N, T)."""
+    probability of B chains with phases (B, N, T); a non-finite start where the mask holds fewer than 2 values as in
+    :func:`dwell_log_likelihood`."""
+    beta, noise = _few_values_fallback(mask, beta, noise)
     ll = dwell_log_likelihood(c, mask, beta, noise)
     start = ((phase == 0) & mask).long().unsqueeze(-1)
     lp = ll.gather(-1, start).squeeze(-1).sum((-1, -2))

@@ -179,10 +179,12 @@ points up to noise; any position density that gives them to one step loses them 
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import numbers
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -208,7 +210,7 @@ from lfd_torch.segmentation.blocks import BlockMeans, block_means
 from lfd_torch.segmentation.dwell import dwell_covariate
 from lfd_torch.segmentation.field import field_log_likelihood_additive, field_observations
 from lfd_torch.segmentation.sampler import BetaProcessHMMSampler, SamplerResult
-from lfd_torch.utils import FLOAT_DTYPES, check_path
+from lfd_torch.utils import FLOAT_DTYPES, check_path, check_tensor
 
 __all__ = [
     "Segmentation",
@@ -403,16 +405,23 @@ class Segmentation:
 
         Args:
             demos: the demonstrations that were segmented (same number and lengths).
-            end_at_attractor: append one sample at g_m with zero velocity to every piece of step m, one time step
-                (the piece's last sampling interval) after its last sample.
+            end_at_attractor: (bool) append one sample at g_m with zero velocity to every piece of step m, one time
+                step (the piece's last sampling interval) after its last sample.
 
         Returns:
             M ``Demos``; entry m holds the pieces of step m (in demonstration order, a demonstration that visits
             the step twice gives two pieces), with attractor g_m; velocities and times are the original ones.
+
+        Raises:
+            InvalidArgumentError: ``demos`` is not a Demos, or ``end_at_attractor`` not a bool.
+            ShapeMismatchError: other demonstrations than the segmented ones. TooFewSamplesError: a piece of fewer
+                than 2 samples without ``end_at_attractor``.
         """
         if not isinstance(demos, Demos):
             raise InvalidArgumentError(f"demos must be the segmented Demos, got {type(demos).__name__} (build one with "
                                        "Demos.from_sequences)")
+        if not isinstance(end_at_attractor, bool):  # "no" or 0.0 would read as True or False silently
+            raise InvalidArgumentError(f"end_at_attractor must be a bool, got {end_at_attractor!r}")
         if demos.n_demos != self.n_sequences:
             raise ShapeMismatchError(f"{demos.n_demos} demonstrations, the segmentation has {self.n_sequences}")
         seg_lengths = torch.tensor([int(lab.shape[0]) for lab in self.labels], device="cpu")
@@ -477,31 +486,22 @@ class Segmentation:
         """Inverse of :meth:`state_dict`.
 
         Raises:
-            StoreError: another schema, a missing key or malformed endpoints.
+            StoreError: another schema; a missing or unknown key; an entry of the wrong type, shape, dtype or device;
+                or one out of range or inconsistent with the others (M steps, J Gaussians, N demonstrations of T_i
+                samples, d dimensions: :func:`_check_state`), naming the key.
             NonFiniteError: NaN or Inf in a float tensor (attractors, space_*, endpoints), naming the key.
         """
         if not isinstance(state, dict) or state.get("schema_version") != SCHEMA_VERSION:
             got = state.get("schema_version") if isinstance(state, dict) else type(state).__name__
             raise StoreError(f"segmentation schema {got!r}, expected {SCHEMA_VERSION}")
-        ends = state.get("endpoints")  # absent in files saved before it was kept
-        if ends is not None and not (isinstance(ends, Tensor) and ends.is_floating_point() and ends.ndim == 3
-                                     and ends.shape[:2] == (len(state.get("labels", ())), 2)):
-            raise StoreError(f"segmentation state: endpoints must be an (N, 2, d) float tensor, got "
-                             f"{getattr(ends, 'shape', type(ends).__name__)}")
-        for key in ("attractors", "space_mean", "space_covariance", "space_weights", "endpoints"):
-            value = state.get(key)  # a NaN here would make every membership test False, silently
-            if isinstance(value, Tensor) and value.is_floating_point() and not bool(torch.isfinite(value).all()):
-                raise NonFiniteError(f"segmentation state: {key} contains NaN or Inf")
-        try:
-            return cls(
-                labels=tuple(state["labels"]), pieces=tuple(state["pieces"]), attractors=state["attractors"],
-                routes=tuple(tuple(int(m) for m in r) for r in state["routes"]), route_of=state["route_of"],
-                space_mean=state["space_mean"], space_covariance=state["space_covariance"],
-                space_weights=state["space_weights"], states=tuple(state["states"]), step_state=state["step_state"],
-                endpoints=state.get("endpoints"),
-            )  # fmt: skip
-        except KeyError as exc:
-            raise StoreError(f"segmentation state lacks {exc}") from exc
+        _check_state(state)
+        return cls(
+            labels=tuple(state["labels"]), pieces=tuple(state["pieces"]), attractors=state["attractors"],
+            routes=tuple(tuple(int(m) for m in r) for r in state["routes"]), route_of=state["route_of"],
+            space_mean=state["space_mean"], space_covariance=state["space_covariance"],
+            space_weights=state["space_weights"], states=tuple(state["states"]), step_state=state["step_state"],
+            endpoints=state.get("endpoints"),
+        )  # fmt: skip
 
     def save(self, path: str | Path) -> Path:
         """Write :meth:`state_dict` atomically with ``torch.save``, with the SHA-256 of its content
@@ -1123,6 +1123,122 @@ def _assemble(
     )
 
 
+#: the keys of :meth:`Segmentation.state_dict` (``endpoints`` may be absent: files saved before it was kept)
+_STATE_KEYS = ("schema_version", "labels", "pieces", "attractors", "routes", "route_of", "space_mean",
+               "space_covariance", "space_weights", "states", "step_state")
+
+
+def _check_state(state: dict[str, Any]) -> None:
+    """Check a segmentation state dict (:meth:`Segmentation.state_dict`, schema 3) before it becomes a Segmentation.
+
+    Keys: those of :data:`_STATE_KEYS`, optionally ``endpoints`` and the file's digest, no other. attractors (M, d),
+    space_mean (J, d), space_covariance (J, d, d) positive definite (a Cholesky factor exists), space_weights (M, J)
+    >= 0 with a positive entry in every row, endpoints (N, 2, d): float tensors of one dtype and device, finite (M, J,
+    N, d >= 1). labels and states: N long (T_i,) tensors on that device; pieces: N long (n_i, 3) tensors of (step,
+    start, end) that tile 0..T_i in order, each sample's label its piece's step; step_state (M,) long >= -1; routes:
+    R non-empty lists of steps 0..M-1 that hold every step; route_of (N,) long 0..R-1, whose route holds the steps
+    of the demonstration's pieces.
+
+    Raises:
+        StoreError: naming the key of the first problem. NonFiniteError: NaN or Inf in a float tensor, naming it.
+    """
+    from lfd_torch.store.checksum import DIGEST_KEY
+
+    missing = [k for k in _STATE_KEYS if k not in state]
+    if missing:
+        raise StoreError(f"segmentation state lacks {', '.join(map(repr, missing))}")
+    extra = sorted(map(repr, set(state) - set(_STATE_KEYS) - {"endpoints", DIGEST_KEY}))
+    if extra:
+        raise StoreError(f"segmentation state has unknown keys {', '.join(extra)} (a file of another version or "
+                         "program)")
+
+    def floats(key: str, shape: tuple[int | None, ...], hint: str, like: Tensor | None = None) -> Tensor:
+        value = state[key]
+        try:  # a shape, dtype or device problem is the file's; NaN or Inf stays NonFiniteError (naming the key)
+            check_tensor(value, f"segmentation state: {key}", ndim=len(shape), bounded=False, shape_hint=hint,
+                         dtype=None if like is None else like.dtype, device=None if like is None else like.device)
+        except ShapeMismatchError as exc:
+            raise StoreError(str(exc)) from exc
+        if any(m != n if n is not None else m == 0 for m, n in zip(value.shape, shape)):  # free sizes >= 1
+            raise StoreError(f"segmentation state: {key} must have shape {hint}, got {tuple(value.shape)}")
+        return value
+
+    def longs(key: str, value: Any, shape: tuple[int | None, ...], hint: str, device: torch.device) -> Tensor:
+        if not (isinstance(value, Tensor) and value.dtype == torch.long and value.ndim == len(shape)
+                and all(n is None or m == n for m, n in zip(value.shape, shape)) and value.device == device):
+            got = (f"{value.dtype} of shape {tuple(value.shape)} on {value.device}" if isinstance(value, Tensor)
+                   else type(value).__name__)
+            raise StoreError(f"segmentation state: {key} must be a long tensor of shape {hint} on {device}, got {got}")
+        return value
+
+    def sequence(key: str) -> list[Any]:
+        value = state[key]
+        if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)):
+            raise StoreError(f"segmentation state: {key} must be a list, got {type(value).__name__}")
+        return list(value)
+
+    attractors = floats("attractors", (None, None), "(M, d)")
+    M, d = attractors.shape
+    dev = attractors.device
+    labels = sequence("labels")
+    N = len(labels)
+    if N == 0:
+        raise StoreError("segmentation state: labels must hold one tensor per demonstration, got none")
+    labels = [longs(f"labels[{i}]", lab, (None,), "(T_i,)", dev) for i, lab in enumerate(labels)]
+    for i, lab in enumerate(labels):
+        if lab.numel() == 0 or not bool(((lab >= 0) & (lab < M)).all()):
+            raise StoreError(f"segmentation state: labels[{i}] must be a non-empty tensor of steps 0..{M - 1} (M = "
+                             f"{M}, the rows of attractors)")
+    for key in ("pieces", "states"):
+        if len(sequence(key)) != N:
+            raise StoreError(f"segmentation state: {key} holds {len(state[key])} entries, labels {N} (one per "
+                             "demonstration each)")
+    for i, (s, lab) in enumerate(zip(state["states"], labels)):
+        longs(f"states[{i}]", s, (lab.shape[0],), f"({lab.shape[0]},)", dev)
+    pieces = [longs(f"pieces[{i}]", p, (None, 3), "(n_i, 3)", dev) for i, p in enumerate(state["pieces"])]
+    for i, (p, lab) in enumerate(zip(pieces, labels)):
+        step, start, end = p.unbind(-1)
+        tiled = (p.shape[0] > 0 and int(start[0]) == 0 and int(end[-1]) == lab.shape[0]
+                 and torch.equal(start[1:], end[:-1]) and bool((end > start).all()))
+        if not tiled or not bool(((step >= 0) & (step < M)).all()):
+            raise StoreError(f"segmentation state: pieces[{i}] must be rows (step 0..{M - 1}, start, end) that cover "
+                             f"samples 0..{lab.shape[0] - 1} of labels[{i}] in order (M = {M}, the rows of "
+                             "attractors)")
+        if not torch.equal(torch.repeat_interleave(step, end - start), lab):
+            raise StoreError(f"segmentation state: labels[{i}] differ from the steps of pieces[{i}]")
+    step_state = longs("step_state", state["step_state"], (M,), f"(M,) = ({M},) (M: the rows of attractors)", dev)
+    if not bool((step_state >= -1).all()):
+        raise StoreError("segmentation state: step_state must hold HMM states >= 0 (or -1 without an HMM)")
+    routes = sequence("routes")
+    ok = len(routes) > 0
+    for r in routes:
+        ok = ok and not isinstance(r, (str, bytes)) and isinstance(r, (list, tuple)) and len(r) > 0 and all(
+            isinstance(m, numbers.Integral) and not isinstance(m, bool) and 0 <= m < M for m in r)
+    if not ok or {int(m) for r in routes for m in r} != set(range(M)):
+        raise StoreError(f"segmentation state: routes must be non-empty lists of steps 0..{M - 1} that hold every "
+                         f"step (M = {M}, the rows of attractors), got {routes!r:.200}")
+    route_of = longs("route_of", state["route_of"], (N,), f"(N,) = ({N},) (N: the entries of labels)", dev)
+    if not bool(((route_of >= 0) & (route_of < len(routes))).all()):
+        raise StoreError(f"segmentation state: route_of must hold routes 0..{len(routes) - 1}")
+    for i, p in enumerate(pieces):
+        if not set(p[:, 0].tolist()) <= {int(m) for m in routes[int(route_of[i])]}:
+            raise StoreError(f"segmentation state: route_of[{i}] is a route without the steps of pieces[{i}]")
+    mean = floats("space_mean", (None, d), f"(J, d) = (J, {d}) (d: the columns of attractors)", like=attractors)
+    J = mean.shape[0]
+    cov = floats("space_covariance", (J, d, d), f"(J, d, d) = ({J}, {d}, {d}) (J: the rows of space_mean)",
+                 like=attractors)
+    if not bool((torch.linalg.cholesky_ex(cov).info == 0).all()):  # as GaussianBank checks it
+        raise StoreError("segmentation state: space_covariance must be symmetric positive definite")
+    weights = floats("space_weights", (M, J), f"(M, J) = ({M}, {J}) (M: the rows of attractors, J: of space_mean)",
+                     like=attractors)
+    if not (bool((weights >= 0).all()) and bool((weights > 0).any(-1).all())):
+        raise StoreError("segmentation state: space_weights must be >= 0 with a Gaussian (a positive entry) for "
+                         "every step")
+    if state.get("endpoints") is not None:
+        floats("endpoints", (N, 2, d), f"(N, 2, d) = ({N}, 2, {d}) (N: the entries of labels, d: the columns of "
+               "attractors)", like=attractors)
+
+
 def _endpoints(demos: Demos) -> Tensor:
     """(N, 2, d) the first and last valid sample of every demonstration."""
     last = (demos.lengths - 1).to(demos.positions.device)
@@ -1221,7 +1337,10 @@ def segment(
             tolerance"); 0: independent deviations; None: chosen with the labelling (type-II over a grid).
         dwell_cue: the model also explains the time spent between grid points, with a learned shift at the first
             point of a run (:mod:`.dwell`): a pause marks a step boundary as far as the data show it. Needs a
-            minimum duration of at least 2 grid points.
+            minimum duration of at least 2 grid points. Where fewer than 2 grid points can start a run (short
+            demonstrations, or ``min_length`` near half of one) the term starts from a finite fallback
+            (:func:`~.dwell.dwell_log_likelihood`), so that such demonstrations segment (usually into one step)
+            instead of failing.
         dwell_pace: with ``dwell_cue``, the collapsed score (so ``selection="map"``) also gives every run its own
             pace level (:mod:`.dwell`, "Pace of a run"): a change of pace where the directions change is evidence of
             a switch. Measured, not the default: it finds more constant-speed corners, but cuts a one-step LASA
@@ -1335,11 +1454,17 @@ def segment(
     if block_emission:
         parts = [block_means(s, g, length) for s, g, (length, _, _) in zip(seqs_full, grid, grid_levels)]
         blocks = BlockMeans([m for m, _, _ in parts], [l for _, l, _ in parts], [c for _, _, c in parts], sigma_x)
-    try:
-        result = sampler.run(xs, vs, generator, min_duration=duration, velocity_noise=sigma_v_t, speed_floor=s_floor,
-                             dwell=dwell, blocks=blocks)
-    except torch.linalg.LinAlgError as exc:  # a degenerate field posterior (e.g. data without any spread)
-        raise SolverError(f"the BP-GM-HMM sampler failed on these demonstrations: {exc}") from exc
+    # fewer than 2 grid points where a run can start (:func:`~.dwell.dwell_mask`): the dwell term starts from the
+    # finite fallback of :mod:`.dwell`, and torch's warning about the variance of < 2 values says nothing to a user
+    few_dwell = dwell is not None and sum(max(0, x.shape[0] - 2 * duration + 1) for x in xs) < 2
+    with warnings.catch_warnings() if few_dwell else contextlib.nullcontext():
+        if few_dwell:
+            warnings.filterwarnings("ignore", message=r"var\(\): degrees of freedom", category=UserWarning)
+        try:
+            result = sampler.run(xs, vs, generator, min_duration=duration, velocity_noise=sigma_v_t,
+                                 speed_floor=s_floor, dwell=dwell, blocks=blocks)
+        except torch.linalg.LinAlgError as exc:  # a degenerate field posterior (e.g. data without any spread)
+            raise SolverError(f"the BP-GM-HMM sampler failed on these demonstrations: {exc}") from exc
     t1 = time.perf_counter()
     info_dwell = {k: v for k, v in result.hyperparameters.items() if k.startswith("dwell_")}
     # full-rate state sequences: the coarse runs, each switch placed by the change-point posterior
