@@ -12,22 +12,24 @@ stays in the segmentation (``Segmentation.log_density`` / ``other_log_density``)
 
 Persistence: ``save(dir)`` writes ``segmentation.pt``, one ``step_{m}.pt`` per primitive, ``skills.pt`` (training
 positions, thresholds) and last ``manifest.json`` (schema, step order, routes, thresholds, the stability report of
-:mod:`~lfd_torch.skills.stability`, the SHA-256 of every file). Each file is written atomically; the manifest
-goes last, so a directory whose manifest is readable is complete. ``load(dir)`` checks the schema and every
-checksum and raises :class:`~lfd_torch.errors.StoreError` naming the missing, truncated or foreign file.
+:mod:`~lfd_torch.skills.stability`, the SHA-256 of every file). The files are staged and replace those of a library
+already there as one change, the manifest last, so a directory whose manifest is readable is complete. ``load(dir)``
+checks the schema, every checksum and the files' content against the segmentation, and raises
+:class:`~lfd_torch.errors.StoreError` naming the missing, truncated, foreign or inconsistent file.
 
 Notation: M steps, d state dimension, N_m training samples of step m; positions in data units (LASA: mm).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
 import json
-import math
 import os
 import shutil
+import uuid
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,7 +44,15 @@ from lfd_torch.errors import InvalidArgumentError, LfdError, ShapeMismatchError,
 from lfd_torch.modulation import reference_entropy
 from lfd_torch.segmentation import Segmentation
 from lfd_torch.store import atomic_save
-from lfd_torch.utils import check_choice, check_float, check_path, float_dtype, resolve_device
+from lfd_torch.utils import (
+    check_choice,
+    check_float,
+    check_int,
+    check_path,
+    check_tensor,
+    float_dtype,
+    resolve_device,
+)
 
 __all__ = ["LIBRARY_SCHEMA", "Skill", "SkillLibrary", "default_fitter"]
 
@@ -99,6 +109,44 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def _is_attractor(a: Tensor, g: Tensor) -> bool:
+    """Whether a primitive's attractor ``a`` is g (to float32 rounding where either is float32)."""
+    rtol = 1e-6 if a.dtype == g.dtype == torch.float64 else 1e-5
+    return a.shape == g.shape and torch.allclose(a, g.to(a), rtol=rtol, atol=1e-9)
+
+
+def _check_step_primitive(prim: StablePrimitive, g: Tensor, m: int, what: str) -> StablePrimitive:
+    """``prim`` if it has g's dtype and device and the attractor g = g_m; ShapeMismatchError naming ``what``."""
+    if prim.dtype != g.dtype or prim.device != g.device:
+        raise ShapeMismatchError(f"{what} is {prim.dtype} on {prim.device}, the demonstrations {g.dtype} on {g.device}")
+    if prim.dim != g.shape[0]:
+        raise ShapeMismatchError(f"{what} has dimension {prim.dim}, the demonstrations {g.shape[0]}")
+    if not _is_attractor(prim.attractor, g):
+        raise ShapeMismatchError(f"{what}: its attractor {prim.attractor.tolist()} is not g_{m} = {g.tolist()}")
+    return prim
+
+
+def _check_skill_values(m: int, h2_ref: Any, train_positions: Any, speed: Any, duration: Any, dim: int) -> None:
+    """The values of skill m: a finite 0-d h2_ref, (N_m, d) finite train_positions, finite speed and duration >= 0.
+
+    Raises:
+        InvalidArgumentError (ShapeMismatchError, NonFiniteError): naming the value and the step.
+    """
+    check_tensor(h2_ref, f"h2_ref of step {m}", ndim=0, shape_hint="()")
+    check_tensor(train_positions, f"train_positions of step {m}", ndim=2, last_dim=dim, shape_hint=f"(N_m, {dim})")
+    check_float(speed, f"speed of step {m}", low=0.0)
+    check_float(duration, f"duration of step {m}", low=0.0)
+
+
+def _check_json(value: Any, name: str) -> None:
+    """InvalidArgumentError naming ``name`` when ``value`` cannot be written into the JSON manifest."""
+    try:
+        json.dumps(value, sort_keys=True, allow_nan=True)
+    except (TypeError, ValueError, RecursionError) as exc:
+        raise InvalidArgumentError(f"{name} must be JSON-serialisable (it is written into the manifest): "
+                                   f"{type(exc).__name__}: {exc}") from exc  # fmt: skip
+
+
 def _step_pieces(pieces: Demos) -> tuple[Tensor, float, float]:
     """Training positions (without the appended attractor sample), typical speed and median duration (s) of one
     step's pieces."""
@@ -134,17 +182,39 @@ class SkillLibrary:
     info: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        M = self.segmentation.n_steps
+        # Every field is checked here, so that whatever is constructed can be saved and loaded back.
+        seg = self.segmentation
+        if not isinstance(seg, Segmentation):
+            raise InvalidArgumentError(f"segmentation must be a Segmentation, got {type(seg).__name__}")
+        if not isinstance(self.skills, (tuple, list)):
+            raise InvalidArgumentError(f"skills must be a tuple of Skill, got {type(self.skills).__name__}")
+        for m, s in enumerate(self.skills):
+            if not isinstance(s, Skill):
+                raise InvalidArgumentError(f"skills must be a tuple of Skill, got a {type(s).__name__} at {m}")
+        object.__setattr__(self, "skills", tuple(self.skills))
+        M = seg.n_steps
         if len(self.skills) != M or any(s.step != m for m, s in enumerate(self.skills)):
             raise ShapeMismatchError(f"a library needs one skill per step in step order (0..{M - 1})")
-        for s in self.skills:
-            if s.primitive.dim != self.segmentation.dim:
-                raise ShapeMismatchError(
-                    f"skill {s.step}: the primitive has dimension {s.primitive.dim}, the segmentation "
-                    f"{self.segmentation.dim}"
-                )
-        if not (math.isfinite(self.span) and self.span > 0):
-            raise InvalidArgumentError(f"span must be a positive number, got {self.span}")
+        for m, s in enumerate(self.skills):
+            if not isinstance(s.primitive, StablePrimitive):
+                raise InvalidArgumentError(f"skill {m}: primitive must be a StablePrimitive, got "
+                                           f"{type(s.primitive).__name__}")  # fmt: skip
+            if s.primitive.dim != seg.dim:
+                raise ShapeMismatchError(f"skill {m}: the primitive has dimension {s.primitive.dim}, the segmentation "
+                                         f"{seg.dim}")  # fmt: skip
+            if not _is_attractor(s.attractor, seg.attractors[m]):
+                raise ShapeMismatchError(f"skill {m}: the primitive's attractor {s.attractor.tolist()} is not g_{m} = "
+                                         f"{seg.attractors[m].tolist()} of the segmentation")  # fmt: skip
+            _check_skill_values(m, s.h2_ref, s.train_positions, s.speed, s.duration, seg.dim)
+        check_float(self.entropy_quantile, "entropy_quantile", low=0.0, high=1.0, allow_none=True)
+        check_float(self.span, "span", low=0.0, low_open=True)
+        if self.stability is not None and not isinstance(self.stability, Mapping):
+            raise InvalidArgumentError(f"stability must be a mapping (a stability report) or None, got "
+                                       f"{type(self.stability).__name__}")  # fmt: skip
+        if not isinstance(self.info, Mapping):
+            raise InvalidArgumentError(f"info must be a mapping, got {type(self.info).__name__}")
+        _check_json(self.stability, "stability")
+        _check_json(self.info, "info")
 
     # ------------------------------------------------------------------ properties
     @property
@@ -201,8 +271,8 @@ class SkillLibrary:
             entropy_reference: ``training`` (the states above) or ``reproduction``: the threshold is also at least
                 the largest H2 of the states that the unmodulated engine visits in each step when it reproduces the
                 training demonstrations from their starts (module docstring).
-            reuse: ``{m: skill or primitive}`` taken as the primitive of step m instead of fitting one (a skill
-                learned on another task); its attractor must equal g_m.
+            reuse: ``{m: skill or primitive}`` taken as the primitive of step m (a step index) instead of fitting one
+                (a skill learned on another task); its attractor must equal g_m.
             check: run :func:`~lfd_torch.skills.check_stability` on the new library (True: default settings; a
                 mapping: its keyword arguments; False: skip) and store the report.
 
@@ -210,8 +280,10 @@ class SkillLibrary:
             The library.
 
         Raises:
-            ShapeMismatchError: demonstrations that are not the segmented ones; a reused primitive of another
-                dimension or attractor.
+            InvalidArgumentError: ``reuse`` that is not a mapping of step indices; a fitter that does not return a
+                StablePrimitive.
+            ShapeMismatchError: demonstrations that are not the segmented ones; a reused or fitted primitive of
+                another dimension or attractor (a fitted one also of another dtype or device).
             LfdError: whatever the fitter raises (SolverError, CertificationError, ...), with the step named.
         """
         if not isinstance(demos, Demos):
@@ -227,7 +299,13 @@ class SkillLibrary:
         fit = default_fitter() if primitive is None else primitive
         if not callable(fit):
             raise InvalidArgumentError(f"primitive must be a fitter callable, got {type(fit).__name__}")
-        reuse = dict(reuse or {})
+        if reuse is None:
+            reuse = {}
+        if not isinstance(reuse, Mapping):
+            raise InvalidArgumentError(f"reuse must be a mapping {{step index: skill or primitive}}, got "
+                                       f"{type(reuse).__name__}")  # fmt: skip
+        reuse = {check_int(k, "reuse key (a step index)", low=0, high=segmentation.n_steps - 1): v
+                 for k, v in reuse.items()}  # fmt: skip
         pieces = segmentation.split(demos, end_at_attractor=True)
         skills = []
         fitted: list[int] = []
@@ -237,9 +315,7 @@ class SkillLibrary:
                 prim = reuse[m].primitive if isinstance(reuse[m], Skill) else reuse[m]
                 if not isinstance(prim, StablePrimitive):
                     raise InvalidArgumentError(f"reuse[{m}] is a {type(prim).__name__}, not a primitive or skill")
-                prim = prim.to(dtype=demos.dtype, device=demos.device)
-                if prim.dim != demos.dim or not torch.allclose(prim.attractor, g, rtol=1e-6, atol=1e-9):
-                    raise ShapeMismatchError(f"reuse[{m}]: its attractor {prim.attractor.tolist()} is not g_{m}")
+                prim = _check_step_primitive(prim.to(dtype=demos.dtype, device=demos.device), g, m, f"reuse[{m}]")
             else:
                 try:
                     prim = fit(part, g, generator=generator)
@@ -247,6 +323,10 @@ class SkillLibrary:
                     if _simple_init(exc):
                         raise type(exc)(f"step {m}: {exc}") from exc
                     raise
+                if not isinstance(prim, StablePrimitive):
+                    raise InvalidArgumentError(f"step {m}: the fitter (primitive=) returned a {type(prim).__name__}, "
+                                               "not a StablePrimitive")  # fmt: skip
+                _check_step_primitive(prim, g, m, f"step {m}: the fitted primitive")
                 fitted.append(m)
             x_m, speed, duration = _step_pieces(part)
             h2 = reference_entropy(prim, x_m, entropy_quantile)
@@ -278,7 +358,7 @@ class SkillLibrary:
             raise InvalidArgumentError(f"primitive must be a StablePrimitive, got {type(primitive).__name__}")
         old = self.skills[m]
         prim = primitive.to(dtype=self.dtype, device=self.device)
-        if prim.dim != self.dim or not torch.allclose(prim.attractor, old.attractor, rtol=1e-6, atol=1e-9):
+        if prim.dim != self.dim or not _is_attractor(prim.attractor, old.attractor):
             raise ShapeMismatchError(f"the primitive's attractor {prim.attractor.tolist()} is not g_{m}")
         h2 = reference_entropy(prim, old.train_positions, self.entropy_quantile)
         skills = list(self.skills)
@@ -289,21 +369,27 @@ class SkillLibrary:
     def save(self, directory: str | os.PathLike[str]) -> Path:
         """Write the library into ``directory`` (module docstring); returns the manifest path.
 
-        Every file is first written into a hidden staging folder inside ``directory`` and then moved into place by
-        renames, the manifest last: a save that fails or is interrupted while writing leaves a library already
-        there as it was (other files in ``directory`` are kept)."""
+        Every file is first written into a hidden staging folder inside ``directory``, then moved into place by
+        renames, the manifest last, after the files of the same names already there were moved aside
+        (:func:`_install`): a save that fails or is interrupted at any point leaves a library already there as it
+        was (other files in ``directory`` are kept).
+
+        Raises:
+            StoreError: ``directory`` is not a usable folder, or writing or moving a file failed.
+            InvalidArgumentError: ``info`` or ``stability`` is not JSON-serialisable (nothing is written).
+        """
         root = check_path(directory, "directory", error=StoreError)
-        stage = root / f".saving-{os.getpid()}"
+        _check_json(self.stability, "stability")  # mutable dicts: they may have changed since construction
+        _check_json(self.info, "info")
+        stage = root / f".saving-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         try:
             root.mkdir(parents=True, exist_ok=True)
-            shutil.rmtree(stage, ignore_errors=True)
             stage.mkdir()
         except OSError as exc:  # a file where the directory should be, no permission
             raise StoreError(f"cannot write the library into directory {root}: {exc}") from exc
         try:
             manifest = self._write_files(stage)
-            for name in [*manifest["files"], _MANIFEST]:
-                os.replace(stage / name, root / name)
+            _install(stage, root, [*manifest["files"], _MANIFEST])
         finally:
             shutil.rmtree(stage, ignore_errors=True)
         return root / _MANIFEST
@@ -358,10 +444,12 @@ class SkillLibrary:
     ) -> SkillLibrary:
         """Read a library written by :meth:`save`; every file is checked against its manifest checksum, and the
         manifest against its own digest (libraries of schema 1, written before the manifest had one, are read
-        without that check).
+        without that check). The content is then checked against the segmentation: one step file per step whose
+        attractor is g_m, and thresholds, training positions, speeds and durations of the right shapes and values.
 
         Raises:
-            StoreError: a missing, truncated, altered or foreign file (the message names it), or another schema.
+            StoreError: a missing, truncated, altered, foreign or inconsistent file (the message names it and the
+                entry), or another schema.
             InvalidArgumentError, UnknownNameError: a bad ``dtype`` or ``device``.
         """
         dtype, device = float_dtype(dtype), resolve_device(device)  # the arguments' faults are not the files'
@@ -380,7 +468,7 @@ class SkillLibrary:
             raise StoreError(f"{man_path} does not match its digest (edited or damaged)")
         try:
             files = dict(manifest["files"])
-            n_steps = int(manifest["n_steps"])
+            n_steps = check_int(manifest["n_steps"], f"{man_path}: n_steps", low=1, error=StoreError)
             span = check_float(manifest["span"], f"{man_path}: span", low=0.0, low_open=True, error=StoreError)
             quantile = check_float(manifest.get("entropy_quantile"), f"{man_path}: entropy_quantile", low=0.0, high=1.0,
                                    allow_none=True, error=StoreError)
@@ -397,14 +485,34 @@ class SkillLibrary:
             if name not in files:
                 raise StoreError(f"{man_path} does not list {name}")
         seg = Segmentation.load(root / "segmentation.pt")
+        if seg.n_steps != n_steps:
+            raise StoreError(f"{man_path}: n_steps is {n_steps}, the segmentation file has {seg.n_steps} steps")
+        extra_path = root / "skills.pt"
         try:
-            extra = torch.load(root / "skills.pt", map_location="cpu", weights_only=True)
+            extra = torch.load(extra_path, map_location="cpu", weights_only=True)
             h2, xs, speed, duration = extra["h2_ref"], extra["train_positions"], extra["speed"], extra["duration"]
         except Exception as exc:
-            raise StoreError(f"cannot read {root / 'skills.pt'}: {exc}") from exc
+            raise StoreError(f"cannot read {extra_path}: {exc}") from exc
+        try:
+            for name, t in (("h2_ref", h2), ("speed", speed), ("duration", duration)):
+                check_tensor(t, name, ndim=1, finite=False, shape_hint=f"({n_steps},)")
+                if t.shape[0] != n_steps:
+                    raise ShapeMismatchError(f"{name} has {t.shape[0]} entries for {n_steps} steps")
+            if not isinstance(xs, (list, tuple)) or len(xs) != n_steps:
+                got = f"{len(xs)} of them" if isinstance(xs, (list, tuple)) else f"a {type(xs).__name__}"
+                raise ShapeMismatchError(f"train_positions must be a list of {n_steps} tensors, got {got}")
+            for m in range(n_steps):
+                _check_skill_values(m, h2[m], xs[m], speed[m], duration[m], seg.dim)
+        except LfdError as exc:
+            raise StoreError(f"library file {extra_path}: {exc}") from exc
         skills = []
         for m in range(n_steps):
-            prim = load_primitive(root / f"step_{m}.pt", dtype=dtype, device=device)
+            path = root / f"step_{m}.pt"
+            prim = load_primitive(path, dtype=dtype, device=device)
+            if prim.dim != seg.dim or not _is_attractor(prim.attractor, seg.attractors[m]):
+                raise StoreError(f"library file {path}: its attractor {prim.attractor.tolist()} is not g_{m} = "
+                                 f"{seg.attractors[m].tolist()} of the segmentation (a file of another step or "
+                                 "library)")  # fmt: skip
             f = {"dtype": prim.dtype, "device": prim.device}
             skills.append(Skill(m, prim, h2[m].to(**f), xs[m].to(**f), float(speed[m]), float(duration[m])))
         if dtype is not None or device is not None:
@@ -414,6 +522,49 @@ class SkillLibrary:
                        dict(manifest.get("info") or {}))  # fmt: skip
         except (KeyError, TypeError, ValueError, LfdError) as exc:
             raise StoreError(f"{man_path}: inconsistent library ({exc})") from exc
+
+
+def _install(stage: Path, root: Path, names: list[str]) -> None:
+    """Move the files ``names`` (the manifest last) from ``stage`` into ``root`` as one change.
+
+    The files of the same names already in ``root`` are first moved aside into a hidden folder, the manifest first
+    (meanwhile ``root`` holds no library rather than a mixed one). If a move fails or an exception interrupts it,
+    the new files are removed and the old ones put back.
+
+    Raises:
+        StoreError: a move failed (the old files are back), or putting them back failed too (the message names the
+            folder that holds them).
+    """
+    aside = stage.with_name(stage.name + ".old")
+    moved: list[str] = []
+    placed: list[str] = []
+    try:
+        aside.mkdir()
+        for name in [_MANIFEST, *(n for n in names if n != _MANIFEST)]:
+            if os.path.lexists(root / name):
+                os.replace(root / name, aside / name)
+                moved.append(name)
+        for name in names:
+            os.replace(stage / name, root / name)
+            placed.append(name)
+    except BaseException as exc:
+        for name in placed:
+            with contextlib.suppress(OSError):
+                os.unlink(root / name)
+        lost = []
+        for name in reversed(moved):  # the manifest last
+            try:
+                os.replace(aside / name, root / name)
+            except OSError:
+                lost.append(name)
+        if lost:
+            raise StoreError(f"cannot move the library files into {root} ({type(exc).__name__}: {exc}), nor put the "
+                             f"previous files {lost} back: they are in {aside}") from exc  # fmt: skip
+        shutil.rmtree(aside, ignore_errors=True)
+        if isinstance(exc, OSError):
+            raise StoreError(f"cannot move the library files into {root}: {exc}") from exc
+        raise
+    shutil.rmtree(aside, ignore_errors=True)
 
 
 def _manifest_digest(manifest: dict) -> str:
