@@ -2,7 +2,9 @@
 
 A push at sample k displaces the robot by ``magnitude`` along a random direction. Its label says where it must land,
 relative to the robot's active step m at that moment (which is only known during the run, so the direction is
-drawn then, by the engine's rollout hook, from the plan's own generator):
+drawn then, by the engine's rollout hook, from the plan's own generator; every rollout of a plan starts that
+generator from the state it had when the plan was drawn, so a plan reused in another rollout of the same robots
+gives the same run):
 
 * ``large``: outside A_m (log p(x|A_m) < log p(x|A_m-)): the large-scale branch must bring the robot back;
 * ``small``: inside A_m but at least ``away`` from every training position of step m: away from the
@@ -45,10 +47,13 @@ class PushPlan:
         steps: (B, P) long sample index of each push (distinct within a row).
         magnitudes: (B, P) displacement lengths (units).
         kinds: (B, P) long index into :data:`PUSH_KINDS`.
-        generator: draws the push directions at push time.
+        generator: the generator the plan was drawn from. The push directions come from a copy of its state at
+            the plan's creation, rewound by :meth:`begin_run` at the start of every rollout: a run neither consumes
+            ``generator`` nor depends on what is drawn from it later, and a reused plan reproduces its run.
         away: smallest distance of a ``small`` push's landing point to the step's training positions (units).
         n_candidates: directions tried for a labelled push.
-        log: one dict per push: row, sample, kind, step, applied, magnitude, landing distance to the data.
+        log: one dict per push: row, sample, kind, step, applied, magnitude, landing distance to the data (every run
+            of the plan appends its own; the rollout reports only those of its run).
     """
 
     steps: Tensor
@@ -66,6 +71,15 @@ class PushPlan:
 
     def __post_init__(self) -> None:
         self._samples = frozenset(self.steps.reshape(-1).tolist())
+        self._start_state = self.generator.get_state()  # the directions' stream of every run starts here
+        self._directions = torch.Generator(device=self.generator.device)
+        self._directions.set_state(self._start_state)
+
+    def begin_run(self) -> int:
+        """Rewind the push directions to the plan's creation (every run of the plan draws the same ones) and return
+        the position in :attr:`log` where this run's entries begin; called by the rollout before its first sample."""
+        self._directions.set_state(self._start_state)
+        return len(self.log)
 
     def apply(self, k: int, x: Tensor, engine: SkillEngine, state: dict[str, Tensor]) -> Tensor | None:
         """The displaced (B, d) state after the pushes scheduled at sample k, or None when none acts."""
@@ -76,13 +90,13 @@ class PushPlan:
             return None
         rows, cols = torch.nonzero(hit, as_tuple=True)
         n, d, C = rows.numel(), x.shape[-1], self.n_candidates
-        dirs = torch.randn((n, C, d), generator=self.generator, dtype=x.dtype, device=self.generator.device)
+        dirs = torch.randn((n, C, d), generator=self._directions, dtype=x.dtype, device=self._directions.device)
         dirs = (dirs / torch.linalg.vector_norm(dirs, dim=-1, keepdim=True)).to(x.device)
         mag = self.magnitudes[rows, cols].to(x)
         cand = x[rows].unsqueeze(1) + mag.view(n, 1, 1) * dirs  # (n, C, d)
         step = state["step"][rows]
         flat_step = step.repeat_interleave(C)
-        own, other = engine.own_other(cand.reshape(n * C, d), flat_step)
+        own, other = engine._own_other(cand.reshape(n * C, d).to(**engine._f), flat_step)  # the run's: checked
         inside = (own >= other).view(n, C)
         dist = torch.empty(n, C, dtype=x.dtype, device=x.device)
         for m in torch.unique(step).tolist():

@@ -55,7 +55,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
+from lfd_torch.errors import InvalidArgumentError, InvalidIndexError, NonFiniteError, ShapeMismatchError
 from lfd_torch.gmm.gaussian import GaussianBank
 from lfd_torch.modulation import Branch, Modulation, modulated_velocity_single, modulated_velocity_unchecked
 from lfd_torch.rollout import Disturbance, RolloutResult, rollout
@@ -319,10 +319,55 @@ class SkillEngine:
         check_tensor(x, name)  # float32/64, finite, below the overflow magnitude
         return x.to(**self._f)
 
+    def _check_step(self, step: Tensor, B: int, name: str = "step") -> Tensor:
+        """``step`` (B,) integer tensor of steps in 0..M-1, as long on the engine's device (as :meth:`_check_x`)."""
+        if not isinstance(step, Tensor) or step.is_floating_point() or step.is_complex() or step.dtype == torch.bool:
+            raise ShapeMismatchError(f"{name} must be a ({B},) integer tensor, got "
+                                     f"{getattr(step, 'dtype', type(step).__name__)}")  # fmt: skip
+        if step.shape != (B,):
+            raise ShapeMismatchError(f"{name} must have shape ({B},), got {tuple(step.shape)}")
+        M = self.library.n_steps
+        bad = (step < 0) | (step >= M)
+        if bool(bad.any()):
+            raise InvalidIndexError(f"{name} entries must lie in 0..{M - 1} (the library's steps), got "
+                                    f"{int(step[bad][0])} (row {int(torch.nonzero(bad)[0])})")  # fmt: skip
+        return step.to(device=self._f["device"], dtype=torch.long)
+
+    @staticmethod
+    def _check_flags(flags: Tensor, B: int, name: str) -> Tensor:
+        """``flags`` (B,) bool tensor (done, inside)."""
+        if not isinstance(flags, Tensor) or flags.dtype != torch.bool:
+            raise ShapeMismatchError(f"{name} must be a ({B},) bool tensor, got "
+                                     f"{getattr(flags, 'dtype', type(flags).__name__)}")  # fmt: skip
+        if flags.shape != (B,):
+            raise ShapeMismatchError(f"{name} must have shape ({B},), got {tuple(flags.shape)}")
+        return flags
+
+    def _check_ld(self, ld: Tensor | None, B: int) -> Tensor | None:
+        """Precomputed (B, M) log densities (``ld`` of :meth:`own_other`, :meth:`choose_route`, :meth:`advance`):
+        -inf allowed (a state outside every subtask space), NaN not."""
+        from lfd_torch.utils import check_tensor
+
+        if ld is None:
+            return None
+        check_tensor(ld, "ld", ndim=2, finite=False, shape_hint=f"({B}, {self.library.n_steps})")
+        if ld.shape != (B, self.library.n_steps):
+            raise ShapeMismatchError(f"ld must have shape ({B}, {self.library.n_steps}) (log_density(x)), got "
+                                     f"{tuple(ld.shape)}")  # fmt: skip
+        if bool(torch.isnan(ld).any()):
+            raise NonFiniteError("ld contains NaN")
+        return ld.to(**self._f)
+
     def log_density(self, x: Tensor) -> Tensor:
-        """(B, M) log p(x|A_m) (``Segmentation.log_density``, evaluated by :class:`SubtaskBank`)."""
-        if x.shape[-1] != self.dim:
-            raise ShapeMismatchError(f"x has dimension {x.shape[-1]}, the engine {self.dim}")
+        """(..., M) log p(x|A_m) of states x (..., d) (``Segmentation.log_density``, evaluated by
+        :class:`SubtaskBank`)."""
+        from lfd_torch.utils import check_tensor
+
+        check_tensor(x, "x", min_ndim=1, last_dim=self.dim, shape_hint=f"(..., {self.dim})")
+        return self._log_density(x)
+
+    def _log_density(self, x: Tensor) -> Tensor:
+        """:meth:`log_density` of checked states."""
         lead = x.shape[:-1]
         flat = x.reshape(-1, self.dim).to(**self._f)
         return self._bank.log_density_fm(flat.T).T.reshape(*lead, self._bank.n_steps)
@@ -339,14 +384,24 @@ class SkillEngine:
     def own_other(self, x: Tensor, step: Tensor, ld: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """log p(x|A_m) and log p(x|A_m-) of the given steps: (B,) each, from one density evaluation (``ld``:
         precomputed (B, M) :meth:`log_density`)."""
-        ld = self.log_density(x) if ld is None else ld  # (B, M)
+        x = self._check_x(x)
+        step = self._check_step(step, x.shape[0])
+        ld = self._check_ld(ld, x.shape[0])
+        if ld is None:
+            return self._own_other(x, step)
         return self._own_other_fm(ld.T, step)
+
+    def _own_other(self, x: Tensor, step: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`own_other` of checked states (B, d) and steps (B,) (the rollout's pushes, :meth:`velocity`)."""
+        return self._own_other_fm(self._bank.log_density_fm(x.T), step)
 
     def choose_route(self, x: Tensor, ld: Tensor | None = None) -> Tensor:
         """(B,) route whose first subtask space is the most likely at x (the first such route on ties)."""
+        x = self._check_x(x)
+        ld = self._check_ld(ld, x.shape[0])
         if len(self.routes) == 1:
             return torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
-        ld = self.log_density(x) if ld is None else ld
+        ld = self._log_density(x) if ld is None else ld
         return ld[:, self._first].argmax(-1)  # (B, R) -> (B,)
 
     def _first_route_fm(self, ld: Tensor) -> Tensor:
@@ -355,14 +410,22 @@ class SkillEngine:
 
     def reached(self, x: Tensor, step: Tensor) -> Tensor:
         """(B,) bool: ||x - g_m|| < r_a."""
-        e = x - self.goals[step]
+        x = self._check_x(x)
+        e = x - self.goals[self._check_step(step, x.shape[0])]
         return (e * e).sum(-1) < self.arrival_radius**2
 
     def advance(
-        self, x: Tensor, route: Tensor, index: Tensor, ld: Tensor | None = None
+        self, x: Tensor, route: Tensor | None, index: Tensor | None, ld: Tensor | None = None
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Route choice (rows with route < 0), step completion and the way on at branchings (module docstring, items
-        1-2); returns route, index, done (B,)."""
+        1-2); returns route, index, done (B,). ``route`` and ``index`` as in :meth:`decide`."""
+        x = self._check_x(x)
+        B = x.shape[0]
+        self._check_progress(route, index, B)
+        ld = self._check_ld(ld, B)
+        dev = x.device
+        route = torch.full((B,), -1, dtype=torch.long, device=dev) if route is None else route.to(dev).long()
+        index = torch.zeros(B, dtype=torch.long, device=dev) if index is None else index.to(dev).long()
         return self._advance_fm(x.T, route, index, None if ld is None else ld.T)
 
     def _advance_fm(
@@ -406,7 +469,20 @@ class SkillEngine:
         return torch.where(own >= best, route, chosen)
 
     def active_step(self, route: Tensor, index: Tensor) -> Tensor:
-        """(B,) active step routes[route][index] (the last step once done)."""
+        """(B,) active step routes[route][index] (the last step once done) of rows on a route (route >= 0)."""
+        if not isinstance(route, Tensor) or route.ndim != 1:
+            raise ShapeMismatchError(f"route must be a (B,) integer tensor, got {getattr(route, 'shape', route)!r}")
+        if index is None:
+            raise ShapeMismatchError(f"index must be a ({route.shape[0]},) integer tensor, got None")
+        self._check_progress(route, index, route.shape[0])
+        if bool((route < 0).any()):
+            raise InvalidIndexError(f"route entries must lie in 0..{len(self.routes) - 1} (a chosen route), got "
+                                    f"{route.tolist()}")  # fmt: skip
+        dev = self._route_len.device
+        return self._active_step(route.to(dev).long(), index.to(dev).long())
+
+    def _active_step(self, route: Tensor, index: Tensor) -> Tensor:
+        """:meth:`active_step` of checked progress."""
         length = self._route_len[route]
         return self._route_steps[route, torch.minimum(index, length - 1)]
 
@@ -425,8 +501,6 @@ class SkillEngine:
     def _check_progress(self, route: Tensor | None, index: Tensor | None, B: int) -> None:
         """route (B,) in -1..R-1 and index (B,) integer tensors (or None); index in 0..len(route) for a row on a
         route (its length: done, as :class:`Decision` returns it) and in 0..(longest route) for a row on none."""
-        from lfd_torch.errors import InvalidIndexError
-
         longest = max(len(r) for r in self.routes)
         for name, t in (("route", route), ("index", index)):
             if t is None:
@@ -455,7 +529,7 @@ class SkillEngine:
         xt = x.T.contiguous()  # (d, B): reductions over d run over contiguous rows
         ld = self._bank.log_density_fm(xt)  # (M, B)
         route, index, done = self._advance_fm(xt, route, index, ld)
-        step = self.active_step(route, index)
+        step = self._active_step(route, index)
         own, other = self._own_other_fm(ld, step)
         return Decision(route, index, step, done, (own >= other) & ~done), (own, other)
 
@@ -487,6 +561,38 @@ class SkillEngine:
         Returns:
             (B, d) velocities (units/s) and (B,) int8 branches.
         """
+        from lfd_torch.utils import check_tensor
+
+        x = self._check_x(x)
+        B = x.shape[0]
+        step = self._check_step(step, B)
+        done = self._check_flags(done, B, "done").to(x.device)
+        inside = None if inside is None else self._check_flags(inside, B, "inside").to(x.device)
+        if densities is not None:
+            if not isinstance(densities, (tuple, list)) or len(densities) != 2:
+                raise InvalidArgumentError("densities must be a pair (log p(x|A_m), log p(x|A_m-)) of (B,) tensors, "
+                                           f"got {type(densities).__name__}")  # fmt: skip
+            for name, t in zip(("densities[0]", "densities[1]"), densities):
+                check_tensor(t, name, ndim=1, finite=False, shape_hint=f"({B},)")  # -inf: outside every space
+                if t.shape != (B,):
+                    raise ShapeMismatchError(f"{name} must have shape ({B},), got {tuple(t.shape)}")
+                if bool(torch.isnan(t).any()):
+                    raise NonFiniteError(f"{name} contains NaN")
+            densities = tuple(t.to(**self._f) for t in densities)
+        if not isinstance(shaping, bool):
+            raise InvalidArgumentError(f"shaping must be a bool, got {shaping!r}")
+        return self._velocity(x, step, done, inside, densities, shaping)
+
+    def _velocity(
+        self,
+        x: Tensor,
+        step: Tensor,
+        done: Tensor,
+        inside: Tensor | None = None,
+        densities: tuple[Tensor, Tensor] | None = None,
+        shaping: bool = True,
+    ) -> tuple[Tensor, Tensor]:
+        """:meth:`velocity` of checked arguments (the rollout's field, :meth:`step_batch`, the stability check)."""
         B = x.shape[0]
         if B >= GROUPED_MIN_ROWS:
             return self._velocity_grouped(x, step, done, inside, densities, shaping)
@@ -494,7 +600,7 @@ class SkillEngine:
         f, h2 = self._stack.evaluate(x, step, entropy=mod.uses_entropy)
         own = other = None
         if mod.uses_subtask_densities:
-            own, other = self.own_other(x, step) if densities is None else densities
+            own, other = self._own_other(x, step) if densities is None else densities
             if inside is None:
                 inside = own >= other
             other = torch.where(inside, torch.full_like(other, -math.inf), other)  # the tree's decision rules
@@ -637,7 +743,7 @@ class SkillEngine:
         x = self._check_x(x)
         self._check_progress(route, index, x.shape[0])
         dec, densities = self._decide(x, route, index)
-        v, branch = self.velocity(x, dec.step, dec.done, dec.inside, densities)
+        v, branch = self._velocity(x, dec.step, dec.done, dec.inside, densities)
         return v, dec, branch
 
     def rollout(
@@ -682,6 +788,7 @@ class SkillEngine:
                                      f"{B}")  # fmt: skip
         dev = x0.device
         T = int(n_steps) + 1
+        log_start = pushes.begin_run() if pushes is not None else 0  # this run's pushes, directions from the start
         route = torch.full((B,), -1, dtype=torch.long, device=dev)
         index = torch.zeros(B, dtype=torch.long, device=dev)
         state = {"route": route, "index": index, "done": torch.zeros(B, dtype=torch.bool, device=dev),
@@ -694,8 +801,8 @@ class SkillEngine:
             if pushes is not None:
                 y = pushes.apply(k, x, self, state)
             xs = x if y is None else y
-            r, j, done = self.advance(xs, state["route"], state["index"])
-            state.update(route=r, index=j, done=done, step=self.active_step(r, j), pending=k, last=k)
+            r, j, done = self._advance_fm(xs.T, state["route"], state["index"])
+            state.update(route=r, index=j, done=done, step=self._active_step(r, j), pending=k, last=k)
             steps_log[k] = state["step"]
             return y
 
@@ -706,11 +813,11 @@ class SkillEngine:
                 v = torch.zeros_like(x)
                 br = torch.full((B,), int(Branch.AT_GOAL), dtype=torch.int8, device=dev)
                 if rows.numel():
-                    v_live, b_live = self.velocity(x.index_select(0, rows), state["step"][rows], done[rows])
+                    v_live, b_live = self._velocity(x.index_select(0, rows), state["step"][rows], done[rows])
                     v.index_copy_(0, rows, v_live)
                     br.index_copy_(0, rows, b_live)
             else:
-                v, br = self.velocity(x, state["step"], done)
+                v, br = self._velocity(x, state["step"], done)
             if state["pending"] is not None:
                 branch_log[state["pending"]] = br
                 state["pending"] = None
@@ -725,7 +832,7 @@ class SkillEngine:
         if last + 1 < T:  # the run ended early: every row is frozen in its final state
             steps_log[last + 1 :] = steps_log[last]
             branch_log[last + 1 :] = int(Branch.AT_GOAL)
-        log = tuple(pushes.log) if pushes is not None else ()
+        log = tuple(pushes.log[log_start:]) if pushes is not None else ()
         return EngineRollout(res, steps_log.T.contiguous(), branch_log.T.contiguous(), state["route"], res.converged, log)
 
     def assign_steps(self, x: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -745,14 +852,22 @@ class SkillEngine:
         Returns:
             (B,) routes and (B, T) long steps (padding repeats the last valid step).
         """
-        if not isinstance(x, Tensor) or x.ndim != 3 or x.shape[-1] != self.dim:
-            raise ShapeMismatchError(f"x must have shape (B, T, {self.dim}), got {getattr(x, 'shape', None)}")
+        from lfd_torch.metrics._checks import check_finite, resolve_mask
+        from lfd_torch.utils import check_tensor
+
+        check_tensor(x, "x", ndim=3, last_dim=self.dim, finite=False, shape_hint=f"(B, T, {self.dim})")
+        if x.shape[0] == 0 or x.shape[1] == 0:
+            raise ShapeMismatchError(f"x must hold at least one trajectory of at least one sample, got shape "
+                                     f"{tuple(x.shape)}")  # fmt: skip
         x = x.to(**self._f)
         B, T, _ = x.shape
-        mask = torch.ones(B, T, dtype=torch.bool, device=x.device) if mask is None else mask.to(x.device)
+        mask = resolve_mask(mask, None, B, T, x.device, min_samples=1)  # bool (B, T), a valid sample in every row
+        if bool((mask[:, 1:] & ~mask[:, :-1]).any()):
+            raise InvalidArgumentError("mask must be prefix-valid (True on the first samples of each row, then False)")
+        check_finite("x", x, mask)  # padding is not read
         lengths = mask.sum(-1)
         R, L = self._route_steps.shape
-        ld = self.log_density(x.reshape(-1, self.dim)).view(B, T, -1)
+        ld = self._log_density(x.reshape(-1, self.dim)).view(B, T, -1)
         # every (trajectory, route) pair is one row of the recursion: B R rows, trajectory-major
         steps_of = self._route_steps.repeat(B, 1)  # (B R, L), padded with the last step
         length = self._route_len.repeat(B)  # (B R,)
@@ -794,7 +909,7 @@ class SkillEngine:
         for s in self.library.skills:
             x = s.train_positions.to(**self._f)
             step = torch.full((x.shape[0],), s.step, dtype=torch.long, device=x.device)
-            own, other = self.own_other(x, step)
+            own, other = self._own_other(x, step)
             shares.append(float((own < other).double().mean()))
         return shares
 

@@ -20,6 +20,7 @@ and stores the report in the manifest.
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -31,7 +32,7 @@ from lfd_torch.errors import InvalidArgumentError
 from lfd_torch.modulation import MODULATION_MODES, Modulation
 from lfd_torch.skills.arrival import Arrival
 
-__all__ = ["StabilityReport", "check_stability", "stability_samples"]
+__all__ = ["MAX_FAR_SCALE", "StabilityReport", "check_stability", "stability_samples"]
 
 
 @dataclass(frozen=True)
@@ -64,6 +65,13 @@ class StabilityReport:
 
 _SAMPLE_KWARGS = frozenset({"n_box", "n_near", "n_far", "box_scale", "near_radius", "far_scale"})
 
+#: Largest ``far_scale`` (in spans of the data). The far region probes the field well outside the data (default 100
+#: spans); larger scales add no new directions, they only bring the check's quadratic forms (Gaussian exponents,
+#: (x - g)^T P (x - g), ||u||^2) towards overflow: far_scale = 1e300 gave inf / NaN margins and failed a stable
+#: library. At 1e6 spans those squares are ~1e12 span^2 / sigma^2, far from overflow; the far states must also stay
+#: below the dtype's overflow magnitude (:func:`~lfd_torch.utils.safe_magnitude`, checked with the library's dtype).
+MAX_FAR_SCALE = 1e6
+
 
 def stability_samples(
     library: Any,
@@ -79,10 +87,12 @@ def stability_samples(
 ) -> tuple[Tensor, Tensor]:
     """States (n, d) of the three regions for step m and their region codes (n,) (0 box, 1 near, 2 far).
 
-    n = n_box + n_near + n_far <= 10^7 (the cost: one engine velocity evaluation per state, mode and step).
+    n = n_box + n_near + n_far <= 10^7 (the cost: one engine velocity evaluation per state, mode and step);
+    far_scale <= :data:`MAX_FAR_SCALE`, with the far states below the overflow magnitude of the library's dtype
+    (:func:`lfd_torch.utils.safe_magnitude`).
     """
     from lfd_torch.skills.library import SkillLibrary
-    from lfd_torch.utils import check_cost, check_float, check_generator, check_int
+    from lfd_torch.utils import check_cost, check_float, check_generator, check_int, safe_magnitude
 
     if not isinstance(library, SkillLibrary):
         raise InvalidArgumentError(f"library must be a SkillLibrary, got {type(library).__name__}")
@@ -91,12 +101,17 @@ def stability_samples(
     for name, n in (("n_box", n_box), ("n_near", n_near), ("n_far", n_far)):
         check_int(n, name, low=0, high=10**7)
     check_cost("n_box + n_near + n_far", float(n_box + n_near + n_far), 1e7, "stability samples")
-    for name, v in (("box_scale", box_scale), ("near_radius", near_radius), ("far_scale", far_scale)):
+    for name, v in (("box_scale", box_scale), ("near_radius", near_radius)):
         check_float(v, name, low=0.0)
+    check_float(far_scale, "far_scale", low=0.0, high=MAX_FAR_SCALE)
     f = {"dtype": library.dtype, "device": library.device}
     x_all = torch.cat([s.train_positions for s in library.skills]).to(**f)
     lo, hi = x_all.amin(0), x_all.amax(0)
     centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo).clamp_min(1e-12 * library.span)
+    reach = float(centre.abs().max()) + far_scale * library.span
+    if reach > safe_magnitude(f["dtype"]):
+        raise InvalidArgumentError(f"far_scale = {far_scale!r} puts the far states {reach:.3g} units out, above "
+                                   f"{safe_magnitude(f['dtype']):.3g} where {f['dtype']} squares overflow")  # fmt: skip
     d = x_all.shape[-1]
     g = library.skills[step].attractor.to(**f)
     gen_dev = generator.device
@@ -152,6 +167,13 @@ def check_stability(
     kw = {k: v for k, v in (("lambda_limit", lambda_limit), ("radial_floor", radial_floor)) if v is not None}
     gen = torch.Generator(device="cpu").manual_seed(int(seed))
     samples = [stability_samples(library, m, generator=gen, **sample_kwargs) for m in range(library.n_steps)]
+    for m, (x, _) in enumerate(samples):  # dV/dt < 0 is checked away from g_m only: at least one such state
+        if not bool((torch.linalg.vector_norm(x - library.skills[m].attractor, dim=-1) > 0).any()):
+            size = inspect.signature(stability_samples).parameters
+            got = ", ".join(f"{k} = {sample_kwargs.get(k, size[k].default)!r}"
+                            for k in ("n_box", "n_near", "near_radius", "n_far"))  # fmt: skip
+            raise InvalidArgumentError(f"no stability sample of step {m} lies away from its attractor ({got}): give "
+                                       "n_box or n_far >= 1, or n_near >= 1 with near_radius > 0")  # fmt: skip
     margins: dict[str, list[float]] = {}
     worst = (-float("inf"), [], -1, "", "")
     max_dvdt = -float("inf")
