@@ -1,5 +1,6 @@
 """Publish a finished lasa_benchmark sweep: merged table, summary (mean +- std per method, train and test) and
-Fig. 9 violins into the project's results/ (refused while a job of the sweep has no rows, unless --force).
+Fig. 9 violins into the project's results/ (refused while a job of the sweep has no finished rows -- none written,
+unreadable, or of another configuration than the job's -- unless --force). Skipped parts are reported on stderr.
 
     python experiments/lasa_benchmark.py +experiment=lasa_benchmark_paper hydra.sweep.dir=multirun/lasa_benchmark_paper
     python experiments/report_benchmark.py multirun/lasa_benchmark_paper --name lasa_benchmark_paper
@@ -24,6 +25,12 @@ from lfd_torch.store import PartialSweepWarning, collect, staged_outputs, unfini
 from lfd_torch.store.paths import project_root  # noqa: E402
 
 
+def _report(caught: list[warnings.WarningMessage]) -> None:
+    """Print each warning once (both collects of the sweep warn about the same skipped parts)."""
+    for message in dict.fromkeys(str(w.message) for w in caught):
+        print(f"warning: {message}", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("sweep", type=Path)
@@ -32,13 +39,15 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     missing = unfinished_jobs(args.sweep)
     if missing and not args.force:
-        print(f"error: {len(missing)} job(s) of {args.sweep} have no results; re-run the sweep or pass --force",
-              file=sys.stderr)  # fmt: skip
+        names = ", ".join(str(m) for m in missing[:5]) + (" ..." if len(missing) > 5 else "")
+        print(f"error: {len(missing)} job(s) of {args.sweep} have no finished results (none, unreadable, or of another "
+              f"configuration: {names}); re-run the sweep or pass --force", file=sys.stderr)  # fmt: skip
         return 2
     results = Path(project_root()) / "results"
+    caught: list[warnings.WarningMessage] = []
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", PartialSweepWarning)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", PartialSweepWarning)
             table = collect(args.sweep)
             summ = summary(table) if len(table) else table.iloc[:0]  # computed before anything is written
             if not len(summ):
@@ -49,8 +58,10 @@ def main(argv: list[str] | None = None) -> int:
                 written += write_summary(summ, staging / "tables", f"{args.name}_summary")
                 written += write_violins(table, staging / "figures" / f"{args.name}_violins.png")
     except StoreError as exc:
+        _report(caught)
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    _report(caught)
     print(f"{len(table)} rows, {table['shape'].nunique()} shapes -> {results} (" + ", ".join(
         str(p.relative_to(staging)) for p in written) + ")")
     return 0

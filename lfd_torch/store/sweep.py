@@ -5,8 +5,14 @@ A Hydra multirun leaves one ``results.parquet`` per job (``multirun/<date>/<time
 
 * temporary files (names starting with ``.`` or ending with ``.tmp``: atomic writes in progress) are
   ignored silently;
-* files that cannot be read (truncated, corrupt) or are not valid results tables are skipped with a
-  :class:`PartialSweepWarning`, so a half-finished sweep can be inspected;
+* files that cannot be read (truncated, corrupt, damaged pandas metadata) or are not valid results tables are
+  skipped with a :class:`PartialSweepWarning`, so a half-finished sweep can be inspected;
+* a part inside a Hydra job folder (one holding ``.hydra/config.yaml``) whose run manifest has another
+  ``config_hash`` or ``seed`` than that ``config.yaml`` (rows an earlier sweep into the same folder left there) is
+  skipped with a :class:`PartialSweepWarning`; the job counts as unfinished (:func:`unfinished_jobs`). Parts written
+  without a run manifest, or in a job folder whose ``config.yaml`` cannot be hashed, are not checked;
+* job folders numbered at or beyond the job count of the sweep's ``multirun.yaml`` (left by an earlier, larger sweep
+  into the same folder) are ignored, with a :class:`PartialSweepWarning`;
 * rows that appear identically in several parts are kept once;
 * rows whose key (:data:`~lfd_torch.store.KEY_COLUMNS`) appears in several parts with different values are
   resolved by keeping the **most recent write**: the part with the latest ``lfd_torch.written_at_ns``
@@ -34,19 +40,22 @@ import pyarrow.parquet as pq
 from lfd_torch.errors import StoreError
 from lfd_torch.utils import check_path
 from lfd_torch.store.atomic import atomic_path, is_temp_file
+from lfd_torch.store.manifest import config_hash
 from lfd_torch.store.table import (
     KEY_COLUMNS,
     REQUIRED_COLUMNS,
     WRITTEN_AT_METADATA_KEY,
     _to_arrow,
+    _manifest_from_metadata,
     read_manifest,
+    _read_rows,
     read_table,
     validate_table,
     written_at_ns,
 )
 
-__all__ = ["collect", "expected_jobs", "find_parts", "finished_part", "sweep_files", "unfinished_jobs",
-           "PartialSweepWarning", "main"]
+__all__ = ["collect", "expected_jobs", "find_parts", "finished_part", "job_config", "jobs_beyond_count", "sweep_files",
+           "unfinished_jobs", "PartialSweepWarning", "main"]
 
 _SUFFIXES = (".parquet", ".csv")
 _ORDER_COLUMNS = ("__written_at_ns", "__part")
@@ -125,17 +134,66 @@ def _output_paths(save_to: object) -> list[Path]:
     return outputs
 
 
-def _read_part(path: Path) -> pd.DataFrame | None:
+def _job_folder(part: Path, root: Path) -> Path | None:
+    """The Hydra job folder (holding ``.hydra/config.yaml``) that ``part`` lies in: the nearest one from the part's
+    folder up to ``root``; None outside any."""
+    for folder in part.parents:
+        if (folder / ".hydra" / "config.yaml").is_file():
+            return folder
+        if folder == root or folder == folder.parent:
+            return None
+    return None
+
+
+def job_config(job: str | os.PathLike[str]) -> tuple[str, int | None] | None:
+    """``(config_hash, seed)`` of a Hydra job folder, from its ``.hydra/config.yaml``: what
+    :func:`~lfd_torch.store.prepare_job` puts in the run manifest of the job's rows (:func:`config_hash` of the job's
+    configuration; seed None when the file has no integer seed). None when the file cannot be read or hashed (e.g.
+    an interpolation that resolves only inside Hydra): the job's configuration is then unknown."""
     try:
-        table = pq.read_table(path)
-        frame = table.to_pandas()
-        validate_table(frame, where=str(path))
-        written = written_at_ns(path, dict(table.schema.metadata or {}))
-    except (OSError, pa.ArrowException, StoreError) as exc:
-        warnings.warn(f"skipping sweep part {path}: {exc}", PartialSweepWarning, stacklevel=3)
+        from omegaconf import DictConfig, OmegaConf
+
+        cfg = OmegaConf.load(Path(job) / ".hydra" / "config.yaml")
+        if not isinstance(cfg, DictConfig):
+            return None
+        seed = cfg.get("seed")
+        return config_hash(cfg), (seed if isinstance(seed, int) and not isinstance(seed, bool) else None)
+    except Exception:  # noqa: BLE001 - an unreadable or unresolvable config: the job's configuration is unknown
         return None
+
+
+def _load_part(path: Path, job: Path | None, configs: dict[Path, Any]) -> tuple[pd.DataFrame | None, str]:
+    """The rows of a part with the order columns, or None and why it is not a finished part of its job: it cannot
+    be read, is not a results table, or (in a Hydra job folder ``job``) its run manifest has another config_hash or
+    seed than the job's ``.hydra/config.yaml``. ``configs`` caches :func:`job_config` per job folder."""
+    try:
+        frame, metadata = _read_rows(path)
+        validate_table(frame, where=str(path))
+        written = written_at_ns(path, metadata)
+        if job is not None:
+            if job not in configs:
+                configs[job] = job_config(job)
+            expected = configs[job]
+            manifest = _manifest_from_metadata(metadata, path) if expected is not None else None
+            if manifest is not None:
+                want_hash, want_seed = expected
+                got_hash, got_seed = manifest.get("config_hash"), manifest.get("seed")
+                if got_hash != want_hash or (want_seed is not None and got_seed != want_seed):
+                    return None, (f"its rows come from another configuration (config_hash {got_hash!r}, seed "
+                                  f"{got_seed!r}) than its job's {job / '.hydra' / 'config.yaml'} (config_hash "
+                                  f"{want_hash!r}, seed {want_seed!r}): left there by an earlier sweep into the same "
+                                  "folder; re-run the sweep")  # fmt: skip
+    except (OSError, StoreError) as exc:
+        return None, str(exc)
     frame["__written_at_ns"] = written
     frame["__part"] = str(path)
+    return frame, ""
+
+
+def _read_part(path: Path, job: Path | None = None, configs: dict[Path, Any] | None = None) -> pd.DataFrame | None:
+    frame, problem = _load_part(path, job, {} if configs is None else configs)
+    if frame is None:
+        warnings.warn(f"skipping sweep part {path}: {problem}", PartialSweepWarning, stacklevel=3)
     return frame
 
 
@@ -203,15 +261,43 @@ def expected_jobs(sweep_file: str | os.PathLike[str]) -> int | None:
         return None
 
 
+def jobs_beyond_count(root: str | os.PathLike[str]) -> dict[Path, tuple[Path, int]]:
+    """Job folders (holding ``.hydra/``) numbered at or beyond the job count of their sweep's ``multirun.yaml``
+    (:func:`expected_jobs`): left by an earlier, larger sweep into the same ``hydra.sweep.dir``, not jobs of this one.
+    Maps each to its ``multirun.yaml`` and that sweep's job count."""
+    beyond: dict[Path, tuple[Path, int]] = {}
+    for sweep in sweep_files(root):
+        n = expected_jobs(sweep)
+        if n is None:
+            continue
+        for folder in sweep.parent.iterdir():
+            name = folder.name
+            if name.isdecimal() and name == str(int(name)) and int(name) >= n and (folder / ".hydra").is_dir():
+                beyond[folder] = (sweep, n)
+    return dict(sorted(beyond.items()))
+
+
+def _beyond(path: Path, beyond: Mapping[Path, Any]) -> Path | None:
+    return next((folder for folder in path.parents if folder in beyond), None)
+
+
 def unfinished_jobs(root: str | os.PathLike[str], pattern: str = "**/*.parquet") -> list[Path]:
-    """Jobs of a Hydra sweep without a results table yet: job folders (holding ``.hydra/``) in which none was
-    written (killed, failed, or still running), and, when the sweep's ``multirun.yaml`` tells how many jobs it
-    launches and its job folders are numbered (``hydra.sweep.subdir: ${hydra.job.num}``), the folders of jobs that
-    never started (:func:`expected_jobs`)."""
+    """Jobs of a Hydra sweep without a finished results table: job folders (holding ``.hydra/``) in which none was
+    written (killed, failed, or still running), or whose only parts cannot be read, are not valid results tables, or
+    come from another configuration than the job's ``.hydra/config.yaml`` (an earlier sweep into the same folder; the
+    rules of :func:`collect`), and, when the sweep's ``multirun.yaml`` tells how many jobs it launches and its job
+    folders are numbered (``hydra.sweep.subdir: ${hydra.job.num}``), the folders of jobs that never started
+    (:func:`expected_jobs`). Job folders beyond that count (:func:`jobs_beyond_count`) are not jobs of the sweep."""
     base = Path(root)
-    jobs = sorted({p.parent.parent for p in base.glob("**/.hydra/config.yaml")})
-    done = {p.resolve() for p in find_parts(base, pattern)} if jobs else set()
-    missing = [j for j in jobs if not any(str(d).startswith(str(j.resolve()) + os.sep) for d in done)]
+    beyond = jobs_beyond_count(base)
+    jobs = sorted({p.parent.parent for p in base.glob("**/.hydra/config.yaml")} - set(beyond))
+    done: set[Path] = set()
+    configs: dict[Path, Any] = {}
+    for part in find_parts(base, pattern) if jobs else []:
+        job = _job_folder(part, base)
+        if job is not None and job not in done and _load_part(part, job, configs)[0] is not None:
+            done.add(job)
+    missing = [j for j in jobs if j not in done]
     for sweep in sweep_files(base):
         n = expected_jobs(sweep)
         if n is not None:
@@ -262,6 +348,8 @@ def collect(
 
     Returns:
         The merged table (default index). Empty, with the required columns, when no part is readable.
+        Skipped parts (unreadable, invalid, of another configuration than their job) do not stop a ``save_to``:
+        refuse a partial sweep first with :func:`unfinished_jobs`, as the command line does.
 
     Raises:
         StoreError: the directory does not exist, ``pattern`` is not a relative glob, or ``save_to`` is not a file
@@ -283,7 +371,16 @@ def collect(
                          f"{' ...' if len(sweeps) > 3 else ''}); collect one sweep folder (hydra.sweep.dir)")
     if not parts:
         warnings.warn(f"no results tables match {pattern!r} under {path_or_dir}", PartialSweepWarning, stacklevel=2)
-    frames = [frame for frame in (_read_part(p) for p in parts) if frame is not None]
+    beyond = jobs_beyond_count(path_or_dir)
+    for folder in sorted({f for f in (_beyond(p, beyond) for p in parts) if f is not None}):
+        sweep, n = beyond[folder]
+        warnings.warn(f"ignoring {folder}: {sweep} launches {n} job(s) (0..{n - 1}), so this folder is left by an "
+                      "earlier sweep into the same folder", PartialSweepWarning, stacklevel=2)  # fmt: skip
+    parts = [p for p in parts if _beyond(p, beyond) is None]
+    root = Path(path_or_dir)
+    root = root.parent if root.is_file() else root
+    configs: dict[Path, Any] = {}
+    frames = [frame for frame in (_read_part(p, _job_folder(p, root), configs) for p in parts) if frame is not None]
     if outputs and not frames:  # a published table is never replaced by an empty one
         raise StoreError(f"no readable results table under {path_or_dir}: nothing written to "
                          f"{', '.join(str(p) for p in outputs)}")
@@ -367,8 +464,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         missing = unfinished_jobs(args.path, args.pattern)
         if missing:  # a partial sweep must not overwrite a published table
             names = ", ".join(str(m) for m in missing[:5]) + (" ..." if len(missing) > 5 else "")
-            print(f"error: {len(missing)} job(s) of the sweep have no results ({names}); re-run the sweep with the "
-                  "same hydra.sweep.dir (finished jobs are skipped) or pass --force", file=sys.stderr)  # fmt: skip
+            print(f"error: {len(missing)} job(s) of the sweep have no finished results (none, unreadable, or of "
+                  f"another configuration: {names}); re-run the sweep with the same hydra.sweep.dir (finished jobs "
+                  "are skipped) or pass --force", file=sys.stderr)  # fmt: skip
             return 2
     try:
         with warnings.catch_warnings(record=True) as caught:

@@ -51,6 +51,14 @@ REQUIRED_COLUMNS: tuple[str, ...] = KEY_COLUMNS + tuple(c for c in PROVENANCE_CO
 MANIFEST_METADATA_KEY = b"lfd_torch.manifest"
 WRITTEN_AT_METADATA_KEY = b"lfd_torch.written_at_ns"
 
+# What pyarrow and pandas raise on a damaged file: a truncated or corrupt Parquet file (OSError, ArrowException),
+# or damaged ``pandas`` schema metadata, which ``Table.to_pandas`` parses (broken JSON or bytes that are not UTF-8:
+# ValueError; a missing field: KeyError; an unknown dtype name or a field of the wrong kind: TypeError,
+# AttributeError, IndexError).
+_READ_ERRORS: tuple[type[BaseException], ...] = (
+    OSError, pa.ArrowException, ValueError, KeyError, IndexError, TypeError, AttributeError,
+)
+
 
 def as_frame(rows: pd.DataFrame | Sequence[Mapping[str, Any]]) -> pd.DataFrame:
     """Rows as a DataFrame with a default index (a copy; the input is never modified).
@@ -215,22 +223,34 @@ def read_table(path: str | os.PathLike[str], *, validate: bool = True) -> pd.Dat
         The rows, in the order they were written, with a default index.
 
     Raises:
-        StoreError: the file is missing or unreadable, or (with ``validate``) not a valid results table.
+        StoreError: the file is missing or unreadable (damaged Parquet data or pandas metadata included), or (with
+            ``validate``) not a valid results table.
     """
     path = check_path(path, "path", error=StoreError)
-    try:
-        frame = pq.read_table(path).to_pandas()
-    except (OSError, pa.ArrowException) as exc:
-        raise StoreError(f"cannot read results table {path}: {exc}") from exc
+    frame, _ = _read_rows(path)
     if validate:
         validate_table(frame, where=str(path))
     return frame
 
 
+def _read_rows(path: Path) -> tuple[pd.DataFrame, dict[bytes, bytes]]:
+    """The rows of a Parquet file (not validated) and its schema metadata.
+
+    Raises:
+        StoreError: naming the file, when it is missing or damaged (the file itself, or the
+            ``pandas`` metadata that :meth:`pyarrow.Table.to_pandas` reads).
+    """
+    try:
+        table = pq.read_table(path)
+        return table.to_pandas(), dict(table.schema.metadata or {})
+    except _READ_ERRORS as exc:
+        raise StoreError(f"cannot read results table {path}: {type(exc).__name__}: {exc}") from exc
+
+
 def _schema_metadata(path: str | os.PathLike[str]) -> dict[bytes, bytes]:
     try:
         return dict(pq.read_schema(path).metadata or {})
-    except (OSError, pa.ArrowException) as exc:
+    except _READ_ERRORS as exc:
         raise StoreError(f"cannot read the schema of {path}: {exc}") from exc
 
 
@@ -242,7 +262,17 @@ def read_manifest(path: str | os.PathLike[str]) -> dict[str, Any] | None:
             object.
     """
     path = check_path(path, "path", error=StoreError)
-    raw = _schema_metadata(path).get(MANIFEST_METADATA_KEY)
+    return _manifest_from_metadata(_schema_metadata(path), path)
+
+
+def _manifest_from_metadata(metadata: Mapping[bytes, bytes], path: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """The run manifest in a table's schema ``metadata`` (see :func:`read_manifest`; ``path`` names the file in
+    errors), or None if it was written without one.
+
+    Raises:
+        StoreError: the manifest is not a JSON object.
+    """
+    raw = metadata.get(MANIFEST_METADATA_KEY)
     if raw is None:
         return None
     try:
