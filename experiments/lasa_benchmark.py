@@ -27,6 +27,11 @@ method, train and test halves: paper Fig. 9); ``publish=true`` (not in a multiru
 Resume: a job whose folder already holds its ``results.parquet`` from the same configuration (config hash and seed)
 is skipped (``resume=true``, the default), so re-running a killed sweep with the same ``hydra.sweep.dir`` only runs
 the jobs that had not finished; the parquet is written atomically as a job's last act, so a killed job leaves none.
+``publish`` is not part of the config hash: ``publish=true`` in a finished job's folder publishes its stored rows.
+
+Every setting is checked before anything is fitted (:func:`check_config`); a configuration error raised inside a fit
+(an out-of-range fitter or segmenter setting) is raised, while a genuine fit failure (solver, certificate, a
+demonstration a step cannot be fitted on) is recorded as rows with NaN metrics and the error in ``status``.
 """
 
 from __future__ import annotations
@@ -49,12 +54,14 @@ from omegaconf import DictConfig, OmegaConf
 from lfd_torch.data import LASA_NAMES, Demos, load_lasa
 from lfd_torch.errors import InvalidArgumentError, LfdError
 from lfd_torch.metrics import cosine_dissimilarity, dtw_distance, swept_area, velocity_error
-from lfd_torch.modulation import Modulation
+from lfd_torch.modulation import MODULATION_MODES, Modulation
 from lfd_torch.preprocess import subsample
 from lfd_torch.skills import SkillEngine, SkillLibrary
-from lfd_torch.store import atomic_write, finished_part, prepare_job, staged_results, write_table
+from lfd_torch.store import atomic_write, finished_part, prepare_job, read_manifest, staged_results, write_table
 from lfd_torch.utils import check_int, derive_seed
 from lfd_torch.viz import violin_grid
+
+from _checks import check_entropy_quantile, get, is_config_error, name_list, positive_int, rollout_steps
 
 log = logging.getLogger(__name__)
 
@@ -93,18 +100,42 @@ def fitter(primitive_cfg: DictConfig) -> Any:
     return instantiate(primitive_cfg)
 
 
-def run(cfg: DictConfig) -> dict[str, Any]:
+def check_config(cfg: DictConfig) -> dict[str, Any]:
+    """Check every setting before anything is fitted (InvalidArgumentError / UnknownNameError naming the key);
+    returns the checked values the run uses: ``shapes``, ``segmentations``, ``primitives``, ``modulations`` (mode
+    -> :class:`Modulation`), ``settings`` (:class:`~lfd_torch.skills.SkillSettings`)."""
     check_int(cfg.fold, "fold", low=0)
+    shapes = name_list(cfg, "shapes", LASA_NAMES, allow_all=True)
+    segmenters, fitters = get(cfg, "segmenters"), get(cfg, "fitters")
+    segmentations = name_list(cfg, "segmentations", list(segmenters.keys()))
+    primitives = name_list(cfg, "primitives", list(fitters.keys()))
+    modes = name_list(cfg, "modulations", MODULATION_MODES)
+    positive_int(cfg, "subsample")
+    rollout_steps(cfg, "dt", "budget_s")
+    check_entropy_quantile(cfg)
+    mod_kw = {k: v for k, v in OmegaConf.to_container(cfg.modulation, resolve=True).items() if k not in ("_target_", "mode")}
+    modulations = {mode: Modulation(mode=mode, **mod_kw) for mode in modes}
+    return {"shapes": shapes, "segmentations": segmentations, "primitives": primitives, "modulations": modulations,
+            "settings": instantiate(cfg.skills)}  # fmt: skip
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    checked = check_config(cfg)
     job = prepare_job(cfg)
     out_dir, manifest = job.out_dir, job.manifest
-    shapes = list(LASA_NAMES) if cfg.shapes == "all" else [str(s) for s in cfg.shapes]
+    shapes = checked["shapes"]
     done = finished_part(out_dir / "results.parquet", manifest) if cfg.resume else None
     if done is not None:  # a re-run sweep (same hydra.sweep.dir) skips its finished jobs
         log.info("%s already holds this job's rows (config %s); skipped", out_dir, manifest["config_hash"])
-        return {"table": done, "summary": summary(done), "written": [], "skipped": True}
-    settings = instantiate(cfg.skills)
+        summ = summary(done)
+        written: list[Path] = []
+        if cfg.get("publish"):  # publish is not in the config hash: publish the finished rows as they are
+            stored = read_manifest(out_dir / "results.parquet") or manifest
+            written = publish(done, summ, cfg, stored)
+            log.info("published the stored rows of %s", out_dir)
+        return {"table": done, "summary": summ, "written": written, "skipped": True}
+    settings = checked["settings"]
     arrival = settings.arrival
-    mod_kw = {k: v for k, v in OmegaConf.to_container(cfg.modulation, resolve=True).items() if k not in ("_target_", "mode")}
     lib_kw = settings.learn_kwargs
     rows: list[dict[str, Any]] = []
     for shape in tqdm(shapes, desc="lasa_benchmark", unit="shape", disable=not cfg.progress):
@@ -115,8 +146,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                                        f"{shape}, got {fold}")  # fmt: skip
         test_idx = [i for i in range(demos.n_demos) if i != fold]
         splits = {"train": ([fold], demos[[fold]]), "test": (test_idx, demos[test_idx])}
-        for seg_name in cfg.segmentations:
-            for prim_name in cfg.primitives:
+        for seg_name in checked["segmentations"]:
+            for prim_name in checked["primitives"]:
                 key = f"{seg_name}+{prim_name}"
                 seed = derive_seed(cfg.experiment, shape, fold, key, cfg.seed)
                 g = torch.Generator().manual_seed(seed)
@@ -127,8 +158,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                     lib = SkillLibrary.learn(splits["train"][1], seg, primitive=fitter(cfg.fitters[prim_name]),
                                              generator=g, **lib_kw)  # fmt: skip
                 except LfdError as exc:
+                    if is_config_error(exc):  # a bad setting, not a failed fit: no row hides it
+                        raise
                     log.error("%s fold %d %s failed: %s", shape, fold, key, exc)
-                    for mod_name in cfg.modulations:
+                    for mod_name in checked["modulations"]:
                         for split, (idx, _) in splits.items():
                             for i in idx:
                                 rows.append({"experiment": cfg.experiment, "shape": shape,
@@ -139,8 +172,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                 fit_s = time.perf_counter() - t0
                 if cfg.save_libraries:
                     lib.save(out_dir / "libraries" / f"{shape}_fold{fold}_{key}")
-                for mod_name in cfg.modulations:
-                    engine = SkillEngine(lib, Modulation(mode=str(mod_name), **mod_kw), arrival)
+                for mod_name, modulation in checked["modulations"].items():
+                    engine = SkillEngine(lib, modulation, arrival)
                     method = f"{key}+{mod_name}" + (f"@{cfg.tag}" if cfg.get("tag") else "")
                     for split, (idx, part) in splits.items():
                         values = evaluate(engine, part, float(cfg.dt), float(cfg.budget_s))
@@ -160,11 +193,17 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     # the rows last: their presence marks the job as finished (resume)
     written.append(write_table(table, out_dir / "results.parquet", manifest=manifest))
     if cfg.get("publish"):
-        written.append(write_table(table, Path(cfg.paths.tables) / f"{cfg.experiment}.parquet", manifest=manifest))
-        written += write_summary(summ, Path(cfg.paths.tables), f"{cfg.experiment}_summary")
-        written += write_violins(table, Path(cfg.paths.figures) / f"{cfg.experiment}_violins.png")
+        written += publish(table, summ, cfg, manifest)
     log.info("summary:\n%s", summ.to_string(index=False))
     return {"table": table, "summary": summ, "written": written, "skipped": False}
+
+
+def publish(table: pd.DataFrame, summ: pd.DataFrame, cfg: DictConfig, manifest: dict[str, Any]) -> list[Path]:
+    """The rows, summary and violins into ``paths.tables`` / ``paths.figures`` (``publish=true``)."""
+    written = [write_table(table, Path(cfg.paths.tables) / f"{cfg.experiment}.parquet", manifest=manifest)]
+    written += write_summary(summ, Path(cfg.paths.tables), f"{cfg.experiment}_summary")
+    written += write_violins(table, Path(cfg.paths.figures) / f"{cfg.experiment}_violins.png")
+    return written
 
 
 def summary(table: pd.DataFrame) -> pd.DataFrame:

@@ -22,16 +22,17 @@ from typing import Any
 import hydra
 import pandas as pd
 import torch
-from hydra.core.hydra_config import HydraConfig
-from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from lfd_torch.data import LASA_NAMES, Demos
+from lfd_torch.errors import UnknownNameError
 from lfd_torch.metrics import dtw_distance, swept_area, velocity_error
 from lfd_torch.preprocess import Preprocess
-from lfd_torch.store import run_manifest, staged_results, write_table
+from lfd_torch.store import prepare_job, staged_results, write_table
 from lfd_torch.viz import violin
+
+from _checks import get, name_list
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +42,11 @@ def _common(a: Demos, b: Demos) -> tuple[torch.Tensor, torch.Tensor, torch.Tenso
     lengths = torch.minimum(a.lengths, b.lengths)
     T = int(lengths.max())
     return a.positions[:, :T], b.positions[:, :T], a.velocities[:, :T], b.velocities[:, :T], lengths
+
+
+#: The columns of :func:`demo_statistics` (what ``plot_metric`` may name).
+STATISTICS: tuple[str, ...] = ("n_samples", "duration", "path_length", "mean_speed", "peak_speed", "end_distance",
+                               "smoothing_velocity_e1", "smoothing_area", "smoothing_dtwd")  # fmt: skip
 
 
 def demo_statistics(raw: Demos, preprocess: Preprocess) -> pd.DataFrame:
@@ -77,16 +83,15 @@ def method_name(preprocess: Preprocess) -> str:
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Tabulate statistics for ``cfg.shapes``; returns the table and the paths written."""
-    if not isinstance(cfg.seed, int):
-        raise TypeError(f"seed must be an integer, got {cfg.seed!r}")
+    shapes = name_list(cfg, "shapes", LASA_NAMES, allow_all=True)
+    plot_metric = get(cfg, "plot_metric")
+    if not isinstance(plot_metric, str) or plot_metric not in STATISTICS:
+        raise UnknownNameError("plot_metric", str(plot_metric), STATISTICS)
+    # an integer seed; publish=true refused in a multirun (every job would overwrite the published table)
+    job = prepare_job(cfg)
     torch.manual_seed(cfg.seed)  # nothing here is random; kept so every job seeds the same way
-    shapes = list(LASA_NAMES) if cfg.shapes == "all" else list(cfg.shapes)
     preprocess: Preprocess = instantiate(cfg.preprocess)
     method = method_name(preprocess)
-    multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
-    if cfg.publish and multirun:
-        raise ValueError("publish=true in a multirun would let every job overwrite the published table; "
-                         "merge the sweep with `python -m lfd_torch.store.collect` instead")
     frames = []
     t0 = time.perf_counter()
     for shape in shapes:
@@ -102,8 +107,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     table = pd.concat(frames, ignore_index=True)
     log.info("%d shapes regularized and measured in %.2f s", len(shapes), time.perf_counter() - t0)
 
-    out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(cfg.get("out_dir", "."))
-    manifest = run_manifest(cfg, cfg.seed)
+    out_dir, manifest = job.out_dir, job.manifest
     written = [write_table(table, out_dir / "results.parquet", manifest=manifest)]
     written.append(out_dir / f"{cfg.plot_metric}.png")
     violin(table, cfg.plot_metric, by="shape", path=written[-1])

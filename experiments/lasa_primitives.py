@@ -13,7 +13,8 @@ clustering -- then for every train and test demonstration record
 
 plus K, the fit time, the certificate margin and whether the rollout converged. One row per (method, demo) goes to
 ``results.parquet`` in the job folder (lfd_torch.store format; ``split`` says train/test, ``fold`` is 0). A method
-that raises a typed error (solver, certificate) is recorded with NaN metrics and the error in ``status``.
+that raises a typed error (solver, certificate, a demonstration a step cannot be fitted on) is recorded with NaN
+metrics and the error in ``status``; a bad setting (InvalidArgumentError, UnknownNameError) is raised instead.
 
     python experiments/lasa_primitives.py data.shape=Sshape
     python experiments/lasa_primitives.py -m data.shape=Angle,Sshape,Snake
@@ -33,16 +34,18 @@ import hydra
 import pandas as pd
 import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig
 
 from lfd_torch.data import Demos
 from lfd_torch.ds import StablePrimitive
-from lfd_torch.errors import LfdError
+from lfd_torch.errors import InvalidArgumentError, LfdError
 from lfd_torch.metrics import cosine_dissimilarity, dtw_distance, velocity_error
 from lfd_torch.preprocess import subsample
-from lfd_torch.rollout import rollout
+from lfd_torch.rollout import IntegrationMethod, rollout
 from lfd_torch.store import prepare_job, run_manifest, staged_results, write_table
-from lfd_torch.utils import derive_seed
+from lfd_torch.utils import check_choice, check_float, check_int, derive_seed
+
+from _checks import get, is_config_error, positive_float, positive_int
 
 log = logging.getLogger(__name__)
 
@@ -75,12 +78,36 @@ def evaluate(model: StablePrimitive, demos: Demos, rollout_cfg: DictConfig) -> d
     }
 
 
+def check_config(cfg: DictConfig) -> None:
+    """Check the settings before anything is loaded or fitted (InvalidArgumentError / UnknownNameError naming the
+    key; the demonstration indices are checked against the data set in :func:`run`)."""
+    positive_int(cfg, "subsample")
+    methods = get(cfg, "methods")
+    if not isinstance(methods, DictConfig) or not len(methods):
+        raise InvalidArgumentError(f"methods must map at least one method name to its ds config, got {methods!r}")
+    for key in ("train_demos", "test_demos"):
+        value = get(cfg, key)
+        if not isinstance(value, (ListConfig, list, tuple)) or not len(value):
+            raise InvalidArgumentError(f"{key} must be a non-empty list of demonstration indices, got {value!r}")
+        for i in value:
+            check_int(i, f"{key} entry")
+    positive_float(cfg, "rollout.dt")
+    positive_float(cfg, "rollout.horizon_factor")
+    check_choice(get(cfg, "rollout.method"), "rollout.method", [m.value for m in IntegrationMethod])
+    for key in ("rollout.position_tol", "rollout.velocity_tol"):  # as rollout() takes them (None: its default)
+        check_float(get(cfg, key), key, low=0.0, allow_inf=True, allow_none=True)
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Fit and evaluate every method on ``cfg.data.shape``; returns the table, the fitted models and paths written."""
+    check_config(cfg)
     job = prepare_job(cfg)  # an integer seed; publish=true refused in a multirun (the jobs would overwrite it)
     shape = str(cfg.data.shape)
     demos = subsample(instantiate(cfg.data), int(cfg.subsample), keep_last=False)  # plain x[::k], as the protocol
     train_idx, test_idx = list(cfg.train_demos), list(cfg.test_demos)
+    for key, idx in (("train_demos", train_idx), ("test_demos", test_idx)):
+        for i in idx:
+            check_int(i, f"{key} entry", low=-demos.n_demos, high=demos.n_demos - 1)  # as Demos indexing takes them
     splits = {"train": (train_idx, demos[train_idx]), "test": (test_idx, demos[test_idx])}
     out_dir = job.out_dir
     rows: list[dict[str, Any]] = []
@@ -98,6 +125,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         try:
             model = fit(splits["train"][1], generator=generator)
         except LfdError as exc:
+            if is_config_error(exc):  # a bad setting, not a failed fit: no row hides it
+                raise
             log.error("%s on %s failed: %s", method, shape, exc)
             for split, (idx, _) in splits.items():
                 for i in idx:

@@ -43,16 +43,28 @@ torch.set_num_threads(1)  # the busy-waiting default pool is ~10x slower on a lo
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from lfd_torch.data import Demos, load_lasa
+from lfd_torch.data import LASA_NAMES, Demos, load_lasa
+from lfd_torch.errors import InvalidArgumentError
 from lfd_torch.metrics import dtw_distance, swept_area
-from lfd_torch.modulation import Branch, Modulation
+from lfd_torch.modulation import MODULATION_MODES, Branch, Modulation
 from lfd_torch.preprocess.regularize import resample
 from lfd_torch.segmentation import FixedSegmenter, NoSegmenter
 from lfd_torch.skills import SkillEngine, SkillLibrary, random_pushes
 from lfd_torch.skills.plot import plot_entropy, plot_rollout_panels
 from lfd_torch.store import atomic_write, prepare_job, staged_results, write_table
-from lfd_torch.utils import derive_seed
+from lfd_torch.utils import check_int, derive_seed
 from lfd_torch.viz.stored import load_demos, save_config, save_demos
+
+from _checks import (
+    check_entropy_quantile,
+    get,
+    name_list,
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+    rollout_steps,
+)
 
 log = logging.getLogger(__name__)
 
@@ -126,6 +138,10 @@ def recovery(engine: SkillEngine, out: Any) -> tuple[torch.Tensor, torch.Tensor]
 
 
 # ---------------------------------------------------------------------------------------------- one task
+#: Training sets: ``one`` (demonstration ``train_demo``, the paper's protocol) and ``all`` (the seven).
+TRAININGS: tuple[str, ...] = ("one", "all")
+
+
 def learn(cfg: DictConfig, demos: Demos, segmenter: Any, seed_parts: tuple) -> tuple[SkillLibrary, float]:
     g = torch.Generator().manual_seed(derive_seed(*seed_parts))
     t0 = time.perf_counter()
@@ -345,7 +361,39 @@ def summary(table: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def check_config(cfg: DictConfig) -> None:
+    """Check every setting before anything is fitted (InvalidArgumentError / UnknownNameError naming the key)."""
+    shapes = name_list(cfg, "shapes", LASA_NAMES)
+    name_list(cfg, "training", TRAININGS)
+    modes = name_list(cfg, "modes", MODULATION_MODES)
+    if "full" not in modes:  # the starts are classified by the full engine's subtask-space test
+        raise InvalidArgumentError(f"modes must include full (the starts are drawn with its engine), got {modes}")
+    if cfg.figures and "none" not in modes:  # Figs 5-7 draw the unmodulated rollouts
+        raise InvalidArgumentError(f"modes must include none when figures=true (Figs 5-7 draw it), got {modes}")
+    n_demos = load_lasa(shapes[0]).n_demos  # every LASA shape has seven
+    check_int(get(cfg, "train_demo"), "train_demo", low=-n_demos, high=n_demos - 1)
+    positive_int(cfg, "n_random")
+    nonnegative_float(cfg, "inside_min_distance")
+    rollout_steps(cfg, "dt", "budget_s")
+    check_int(get(cfg, "n_resample"), "n_resample", low=2)
+    n_pushes = nonnegative_int(cfg, "pushes.n")
+    first_s, last_s = positive_float(cfg, "pushes.first_s"), positive_float(cfg, "pushes.last_s")
+    first, last = int(first_s / cfg.dt), int(last_s / cfg.dt)  # the push window in samples, as roll() makes it
+    if first < 1 or last - first + 1 < n_pushes:
+        raise InvalidArgumentError(f"pushes.first_s..pushes.last_s ({first_s}..{last_s} s, samples {first}..{last} at "
+                                   f"dt {cfg.dt}) must start at >= 1 sample and hold pushes.n = {n_pushes} samples")  # fmt: skip
+    low, high = positive_float(cfg, "pushes.low"), positive_float(cfg, "pushes.high")
+    if low > high:
+        raise InvalidArgumentError(f"pushes.low must not exceed pushes.high, got {low} > {high}")
+    check_entropy_quantile(cfg)
+    mod_kw = {k: v for k, v in OmegaConf.to_container(cfg.modulation, resolve=True).items() if k not in ("_target_", "mode")}
+    for mode in modes:
+        Modulation(mode=mode, **mod_kw)
+    instantiate(cfg.skills)
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
+    check_config(cfg)
     job = prepare_job(cfg)
     out_dir, manifest = job.out_dir, job.manifest
     rows: list[dict[str, Any]] = []

@@ -44,16 +44,26 @@ from tqdm import tqdm
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 torch.set_num_threads(1)  # the busy-waiting default pool is ~10x slower on a loaded 2-core box
 from hydra.utils import instantiate  # noqa: E402
-from omegaconf import DictConfig, OmegaConf  # noqa: E402
+from omegaconf import DictConfig, ListConfig, OmegaConf  # noqa: E402
 
 from lfd_torch.data import Demos, extract_stroke, load_mnist  # noqa: E402
-from lfd_torch.errors import LfdError  # noqa: E402
+from lfd_torch.errors import InvalidArgumentError, LfdError  # noqa: E402
 from lfd_torch.metrics import dtw_distance, swept_area  # noqa: E402
 from lfd_torch.rollout import rollout  # noqa: E402
 from lfd_torch.skills import SkillEngine, SkillLibrary  # noqa: E402
 from lfd_torch.store import atomic_write, prepare_job, staged_results, write_table  # noqa: E402
-from lfd_torch.utils import derive_seed  # noqa: E402
+from lfd_torch.utils import check_int, derive_seed  # noqa: E402
 from lfd_torch.viz.stored import load_demos, save_demos  # noqa: E402
+
+from _checks import (  # noqa: E402
+    check_entropy_quantile,
+    get,
+    is_config_error,
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+    rollout_steps,
+)
 
 log = logging.getLogger(__name__)
 
@@ -166,6 +176,8 @@ def run_digit(cfg: DictConfig, digit: int) -> tuple[list[dict[str, Any]], dict[s
                 extra = {"n_steps_task": 1, "n_components": model.n_components, "stability_passed": True}
             roll_s = time.perf_counter() - t0
         except LfdError as exc:
+            if is_config_error(exc):  # a bad setting, not a failed fit: no row hides it
+                raise
             log.error("digit %d, %s failed: %s", digit, method, exc)
             for b, kind in enumerate(kinds):
                 rows.append({**common, "method": method, "trajectory": b, "starts": kind,
@@ -311,8 +323,28 @@ def summary(table: pd.DataFrame) -> pd.DataFrame:
     return wide
 
 
+def check_config(cfg: DictConfig) -> None:
+    """Check every setting before anything is loaded or fitted (InvalidArgumentError naming the key)."""
+    digits = get(cfg, "digits")
+    if not isinstance(digits, (ListConfig, list, tuple)) or not len(digits):
+        raise InvalidArgumentError(f"digits must be a non-empty list of digits 0..9, got {digits!r}")
+    for d in digits:
+        check_int(d, "digits entry", low=0, high=9)
+    if len(set(digits)) != len(digits):
+        raise InvalidArgumentError(f"digits must not repeat a digit, got {list(digits)}")
+    nonnegative_int(cfg, "n_perturbed")
+    nonnegative_float(cfg, "perturb")
+    rollout_steps(cfg, "dt", "budget_s")
+    positive_float(cfg, "reach_radius")
+    check_int(get(cfg, "n_resample"), "n_resample", low=2)
+    check_entropy_quantile(cfg)
+    instantiate(cfg.modulation)
+    instantiate(cfg.skills)
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """All digits of ``cfg.digits``; returns the table, the summary and the paths written."""
+    check_config(cfg)
     job = prepare_job(cfg)
     out_dir, manifest = job.out_dir, job.manifest
     t_start = time.perf_counter()

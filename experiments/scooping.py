@@ -43,7 +43,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from lfd_torch.errors import StoreError
-from lfd_torch.modulation import Modulation
+from lfd_torch.modulation import MODULATION_MODES, Modulation
 from lfd_torch.robot import load_demonstration, scooping_demonstration
 from lfd_torch.robot.demonstration import STAGE_NAMES
 from lfd_torch.robot.task import ScoopingTask, controller_for, learn_scooping
@@ -59,6 +59,15 @@ from lfd_torch.segmentation import Segmentation
 from lfd_torch.store import atomic_write, prepare_job, staged_results, write_table
 from lfd_torch.utils import derive_seed
 from lfd_torch.viz.stored import load_demos, load_state, save_config, save_demos, save_state
+
+from _checks import (
+    check_entropy_quantile,
+    name_list,
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+)
 
 log = logging.getLogger(__name__)
 
@@ -415,17 +424,43 @@ def store_config(cfg: DictConfig, timings: dict[str, float], n_steps: int, step_
 
 
 # ---------------------------------------------------------------------------------------------- run
+def check_config(cfg: DictConfig) -> None:
+    """Check every setting before anything is built or fitted (InvalidArgumentError / UnknownNameError naming the
+    key)."""
+    positive_int(cfg, "threads")
+    modes = name_list(cfg, "modes", MODULATION_MODES)
+    positive_int(cfg, "starts.n")
+    nonnegative_float(cfg, "starts.radius")
+    nonnegative_float(cfg, "starts.height")
+    positive_float(cfg, "budget_s")
+    nonnegative_int(cfg, "n_disturbed")
+    positive_int(cfg, "batch_size")
+    if "workers" in cfg:
+        positive_int(cfg, "workers")
+    nonnegative_float(cfg, "away")
+    nonnegative_int(cfg, "n_figure_trials")
+    check_entropy_quantile(cfg)
+    mod_kw = OmegaConf.to_container(cfg.modulation, resolve=True)
+    for mode in modes:
+        Modulation(mode=mode, **mod_kw)
+    instantiate(cfg.skills)
+    SuccessCriteria(**OmegaConf.to_container(cfg.criteria, resolve=True))
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
+    check_config(cfg)
     torch.set_num_threads(int(cfg.threads))
     job = prepare_job(cfg)
     out_dir, manifest = job.out_dir, job.manifest
+    # the plan is drawn before learning so that a bad `disturbances` setting fails first (its own generator: the
+    # order changes nothing)
+    g = torch.Generator().manual_seed(derive_seed(cfg.experiment, "disturbances", cfg.seed))
+    plan = plan_disturbances(int(cfg.n_disturbed), g, **OmegaConf.to_container(cfg.disturbances, resolve=True))
     robot = instantiate(cfg.robot, _convert_="all")
     task = learn(cfg, robot)
     ctls = controllers(cfg, task, robot)
     q_starts = start_configurations(task, robot.arm, int(cfg.starts.n), radius=float(cfg.starts.radius),
                                     height=float(cfg.starts.height))  # fmt: skip
-    g = torch.Generator().manual_seed(derive_seed(cfg.experiment, "disturbances", cfg.seed))
-    plan = plan_disturbances(int(cfg.n_disturbed), g, **OmegaConf.to_container(cfg.disturbances, resolve=True))
     q_dist = q_starts[torch.arange(len(plan)) % q_starts.shape[0]]
     rows: list[dict[str, Any]] = []
     start_batches: dict[str, TrialBatch] = {}

@@ -32,14 +32,13 @@ from tqdm import tqdm
 
 torch.set_num_threads(1)  # the busy-waiting default pool is ~10x slower on a loaded 2-core box
 from hydra.core.hydra_config import HydraConfig
-from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from lfd_torch.data import Demos, load_lasa
 from lfd_torch.segmentation.plot import plot_segmentation
 from lfd_torch.segmentation.synthetic import multi_step_demos
-from lfd_torch.store import atomic_write, run_manifest, staged_results, write_table
+from lfd_torch.store import atomic_write, prepare_job, staged_results, write_table
 from lfd_torch.utils import derive_seed
 from lfd_torch.viz.stored import save_demos
 
@@ -79,14 +78,12 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     """Segment every data set; returns the table and the paths written.
 
     Raises:
-        ValueError: ``publish=true`` in a Hydra multirun.
+        InvalidArgumentError: ``seed`` not an integer, or ``publish=true`` in a Hydra multirun (every job would
+            overwrite the published table and figures; run the published configuration alone,
+            ``+experiment=segment_lasa_publish``).
     """
-    multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
-    if cfg.get("publish") and multirun:
-        raise ValueError("publish=true in a multirun would let every job overwrite the published table and "
-                         "figures; run the published configuration alone (+experiment=segment_lasa_publish)")
-    out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(cfg.get("out_dir", "."))
-    manifest = run_manifest(cfg, seed=cfg.seed)
+    job = prepare_job(cfg)
+    out_dir, manifest = job.out_dir, job.manifest
     segmenter = instantiate(cfg.segmentation)
     method = (HydraConfig.get().runtime.choices.get("segmentation") if HydraConfig.initialized() else None) or "bp_gm_hmm"
     rows: list[dict[str, Any]] = []
