@@ -341,8 +341,14 @@ def test_the_stored_corl_primitive_rows_are_what_the_code_computes(tmp_path: Pat
     ref = stored[(stored["shape"] == "Angle") & (stored.seed == 0)].sort_values(keys)
     table = table.sort_values(keys)
     assert len(ref) == len(table) == 3 * 7 and list(ref.method) == list(table.method)
+    # SEDS is fitted by some hundred L-BFGS iterations on a non-convex objective, which amplify the last-bit
+    # differences of another CPU's kernels: its rows came back 0.16 % off on a re-provisioned machine (2026-12-08,
+    # the same code and table); the LPV-DS rows (convex programs) agree to 1e-6. A changed fitter default moves
+    # them by far more than 1 %.
+    rtol = np.where(table.method.to_numpy() == "seds", 1e-2, 1e-6)
     for metric in ("RMSE", "E2", "DTWD"):
-        np.testing.assert_allclose(table[metric].to_numpy(), ref[metric].to_numpy(), rtol=1e-6, err_msg=metric)
+        got, want = table[metric].to_numpy(), ref[metric].to_numpy()
+        assert (np.abs(got - want) <= rtol * np.abs(want)).all(), (metric, got, want)
 
 
 @pytest.mark.slow
