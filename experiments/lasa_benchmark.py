@@ -60,8 +60,14 @@ from lfd_torch.skills import SkillEngine, SkillLibrary
 from lfd_torch.store import atomic_write, finished_part, prepare_job, read_manifest, staged_results, write_table
 from lfd_torch.utils import check_int, derive_seed
 from lfd_torch.viz import violin_grid
-
-from _checks import check_entropy_quantile, get, is_config_error, name_list, positive_int, rollout_steps
+from lfd_torch.store.config_checks import (
+    check_entropy_quantile,
+    get,
+    is_config_error,
+    name_list,
+    positive_int,
+    rollout_steps,
+)
 
 log = logging.getLogger(__name__)
 

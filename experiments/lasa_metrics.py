@@ -31,8 +31,7 @@ from lfd_torch.metrics import dtw_distance, swept_area, velocity_error
 from lfd_torch.preprocess import Preprocess
 from lfd_torch.store import prepare_job, staged_results, write_table
 from lfd_torch.viz import violin
-
-from _checks import get, name_list
+from lfd_torch.store.config_checks import get, name_list
 
 log = logging.getLogger(__name__)
 

@@ -44,8 +44,7 @@ from lfd_torch.preprocess import subsample
 from lfd_torch.rollout import IntegrationMethod, rollout
 from lfd_torch.store import prepare_job, run_manifest, staged_results, write_table
 from lfd_torch.utils import check_choice, check_float, check_int, derive_seed
-
-from _checks import get, is_config_error, positive_float, positive_int
+from lfd_torch.store.config_checks import get, is_config_error, positive_float, positive_int
 
 log = logging.getLogger(__name__)
 

@@ -54,8 +54,7 @@ from lfd_torch.skills.plot import plot_entropy, plot_rollout_panels
 from lfd_torch.store import atomic_write, prepare_job, staged_results, write_table
 from lfd_torch.utils import check_int, derive_seed
 from lfd_torch.viz.stored import load_demos, save_config, save_demos
-
-from _checks import (
+from lfd_torch.store.config_checks import (
     check_entropy_quantile,
     get,
     name_list,

@@ -54,8 +54,7 @@ from lfd_torch.skills import SkillEngine, SkillLibrary  # noqa: E402
 from lfd_torch.store import atomic_write, prepare_job, staged_results, write_table  # noqa: E402
 from lfd_torch.utils import check_int, derive_seed  # noqa: E402
 from lfd_torch.viz.stored import load_demos, save_demos  # noqa: E402
-
-from _checks import (  # noqa: E402
+from lfd_torch.store.config_checks import (  # noqa: E402
     check_entropy_quantile,
     get,
     is_config_error,

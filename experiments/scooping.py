@@ -59,8 +59,7 @@ from lfd_torch.segmentation import Segmentation
 from lfd_torch.store import atomic_write, prepare_job, staged_results, write_table
 from lfd_torch.utils import derive_seed
 from lfd_torch.viz.stored import load_demos, load_state, save_config, save_demos, save_state
-
-from _checks import (
+from lfd_torch.store.config_checks import (
     check_entropy_quantile,
     name_list,
     nonnegative_float,

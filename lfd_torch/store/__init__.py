@@ -18,6 +18,8 @@ and after the sweep::
 
 Every file is written atomically (:func:`atomic_path`, :func:`atomic_write`): readers never see a partial file.
 The command line ``python -m lfd_torch.store.collect SWEEP_DIR --out FILE`` wraps :func:`collect`.
+The experiment scripts check their Hydra configuration before fitting with :mod:`.config_checks` (errors name the
+key), and set up each job with :func:`prepare_job`.
 """
 
 from lfd_torch.store.atomic import atomic_path, atomic_save, atomic_write, is_temp_file

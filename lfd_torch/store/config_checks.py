@@ -1,4 +1,4 @@
-"""Up-front checks of the experiment scripts' configurations (run at the top of each ``run(cfg)``, before fitting).
+"""Up-front checks of the experiment scripts' Hydra configurations (at the top of each ``run(cfg)``, before fitting).
 
 Every check raises a typed lfd_torch error whose message names the configuration key: :class:`InvalidArgumentError`
 for a value out of range or of the wrong kind, :class:`UnknownNameError` for a name outside its valid set.
@@ -8,8 +8,6 @@ fit failure (a solver failure, a bad demonstration: recorded as a failed row).
 
 from __future__ import annotations
 
-import importlib
-import sys
 from collections.abc import Iterable
 from typing import Any
 
@@ -128,17 +126,3 @@ def is_config_error(exc: BaseException) -> bool:
     """Whether an error raised during a fit is a bad setting (an argument out of range, an unknown name) rather than
     the fit's outcome on its data (:data:`FIT_FAILURES`, solver and certificate failures)."""
     return isinstance(exc, (InvalidArgumentError, UnknownNameError)) and not isinstance(exc, FIT_FAILURES)
-
-
-def _pickle_by_value() -> None:
-    """Launchers that run a job in another process (Hydra's submitit launchers; joblib) ship the task function with
-    cloudpickle, which pickles functions of an importable module by reference. This module lives in experiments/,
-    which is not on a submitit worker's import path, so its functions travel by value instead."""
-    for name in ("cloudpickle", "joblib.externals.cloudpickle"):
-        try:
-            importlib.import_module(name).register_pickle_by_value(sys.modules[__name__])
-        except (ImportError, AttributeError, ValueError):  # not installed, or too old to register modules
-            pass
-
-
-_pickle_by_value()
