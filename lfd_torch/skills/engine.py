@@ -57,11 +57,13 @@ from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError, InvalidIndexError, NonFiniteError, ShapeMismatchError
 from lfd_torch.gmm.gaussian import GaussianBank
+from lfd_torch.metrics._checks import check_finite, resolve_mask
 from lfd_torch.modulation import Branch, Modulation, modulated_velocity_single, modulated_velocity_unchecked
-from lfd_torch.rollout import Disturbance, RolloutResult, rollout
+from lfd_torch.rollout import MAX_STORED_VALUES, Disturbance, RolloutResult, rollout
 from lfd_torch.skills.arrival import Arrival, rate_floor, shape_single, speed_cap
 from lfd_torch.skills.library import SkillLibrary
 from lfd_torch.skills.stack import PrimitiveStack
+from lfd_torch.utils import check_cost, check_int, check_tensor
 
 __all__ = ["CHUNK", "GROUPED_MIN_ROWS", "Decision", "EngineRollout", "SkillEngine", "SubtaskBank", "TickResult"]
 
@@ -312,7 +314,6 @@ class SkillEngine:
             raise ShapeMismatchError(f"{name} must be a floating-point tensor, got {type(x).__name__}")
         if x.ndim != 2 or x.shape[-1] != self.dim:
             raise ShapeMismatchError(f"{name} must have shape (B, {self.dim}), got {tuple(x.shape)}")
-        from lfd_torch.utils import check_tensor
 
         if x.shape[0] == 0:
             raise ShapeMismatchError(f"{name} must hold at least one state, got shape {tuple(x.shape)}")
@@ -346,7 +347,6 @@ class SkillEngine:
     def _check_ld(self, ld: Tensor | None, B: int) -> Tensor | None:
         """Precomputed (B, M) log densities (``ld`` of :meth:`own_other`, :meth:`choose_route`, :meth:`advance`):
         -inf allowed (a state outside every subtask space), NaN not."""
-        from lfd_torch.utils import check_tensor
 
         if ld is None:
             return None
@@ -361,7 +361,6 @@ class SkillEngine:
     def log_density(self, x: Tensor) -> Tensor:
         """(..., M) log p(x|A_m) of states x (..., d) (``Segmentation.log_density``, evaluated by
         :class:`SubtaskBank`)."""
-        from lfd_torch.utils import check_tensor
 
         check_tensor(x, "x", min_ndim=1, last_dim=self.dim, shape_hint=f"(..., {self.dim})")
         return self._log_density(x)
@@ -561,7 +560,6 @@ class SkillEngine:
         Returns:
             (B, d) velocities (units/s) and (B,) int8 branches.
         """
-        from lfd_torch.utils import check_tensor
 
         x = self._check_x(x)
         B = x.shape[0]
@@ -773,9 +771,7 @@ class SkillEngine:
         Returns:
             :class:`EngineRollout`.
         """
-        from lfd_torch.rollout import MAX_STORED_VALUES
         from lfd_torch.skills.disturbances import PushPlan
-        from lfd_torch.utils import check_cost, check_int
 
         x0 = self._check_x(x0, "x0")
         check_int(n_steps, "n_steps", low=1)
@@ -852,8 +848,6 @@ class SkillEngine:
         Returns:
             (B,) routes and (B, T) long steps (padding repeats the last valid step).
         """
-        from lfd_torch.metrics._checks import check_finite, resolve_mask
-        from lfd_torch.utils import check_tensor
 
         check_tensor(x, "x", ndim=3, last_dim=self.dim, finite=False, shape_hint=f"(B, T, {self.dim})")
         if x.shape[0] == 0 or x.shape[1] == 0:
