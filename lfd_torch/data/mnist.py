@@ -533,7 +533,8 @@ def extract_stroke(
     """The pen path of one digit image (module docstring, steps 1-5).
 
     Args:
-        image: (H, W) intensities, uint8 0..255 (float images are taken as 0..255 too).
+        image: (H, W) intensities, uint8 0..255 (float and integer images are taken as 0..255 too; a bool image is
+            an ink mask, True = 255).
         threshold: ink threshold, fraction of 255 (0 < threshold < 1).
         upsample: bilinear upsampling factor before binarisation, in [1, 64] (cost: H W upsample^2 pixels, at most
             1e8).
@@ -559,6 +560,8 @@ def extract_stroke(
     check_float(threshold, "threshold", low=0.0, high=1.0, low_open=True, high_open=True)
     if img.dtype.kind not in "fiub" or not np.isfinite(img).all():
         raise InvalidArgumentError(f"image must hold finite real numbers (0..255), got {img.dtype}")
+    if img.dtype.kind == "b":  # an ink mask: True is full ink (255), False none
+        img = img.astype(np.uint8) * np.uint8(255)
     check_int(upsample, "upsample", low=1, high=MAX_UPSAMPLE)
     check_cost("upsample", float(img.shape[0] * img.shape[1]) * upsample**2, 1e8, "pixels after upsampling")
     if not 0.0 <= loop_gap < 1.0:
@@ -688,15 +691,14 @@ def stroke_trajectory(
         path: (n, 2) pen positions, px (``extract_stroke``'s ``Stroke.path``), finite, n >= 2 and not all at one
             point; consecutive duplicates are dropped.
         n_points: >= 3 samples at equal time steps.
+        mm_per_pixel, mean_speed: finite numbers > 0 (mm per px, mm/s).
         cusp_angle: degrees in (0, 180), or None; cusp_window: > 0, path units.
     """
     if time_law not in ("min_jerk", "constant"):
         raise UnknownNameError("time law", str(time_law), ("min_jerk", "constant"))
     check_int(n_points, "n_points", low=3, high=MAX_POINTS)
-    if not (mm_per_pixel > 0 and math.isfinite(mm_per_pixel)):
-        raise InvalidArgumentError(f"mm_per_pixel must be finite and > 0, got {mm_per_pixel}")
-    if not (mean_speed > 0 and math.isfinite(mean_speed)):
-        raise InvalidArgumentError(f"mean_speed must be finite and > 0, got {mean_speed}")
+    mm_per_pixel = check_float(mm_per_pixel, "mm_per_pixel", low=0.0, low_open=True)
+    mean_speed = check_float(mean_speed, "mean_speed", low=0.0, low_open=True)
     if cusp_angle is not None:
         check_float(cusp_angle, "cusp_angle", low=0.0, high=180.0, low_open=True, high_open=True)
     check_float(cusp_window, "cusp_window", low=0.0, low_open=True)

@@ -56,6 +56,7 @@ __all__ = [
     "StablePrimitive",
     "load_primitive",
     "quadratic_margins",
+    "check_velocity_covariances",
     "residual_velocity_covariances",
 ]
 
@@ -171,11 +172,7 @@ class StablePrimitive:
             raise CertificationError(
                 f"{self.kind}: lambda_max(A_k^T P + P A_k) = {cert.margins.tolist()} (1/s); all must be < 0"
             )
-        Sv = self.velocity_covariances.to(torch.float64)
-        if not torch.allclose(Sv, Sv.transpose(-2, -1), rtol=1e-6, atol=0.0) or (
-            torch.linalg.eigvalsh(0.5 * (Sv + Sv.transpose(-2, -1)))[..., 0] <= 0
-        ).any():
-            raise ShapeMismatchError("velocity_covariances must be symmetric positive definite")
+        check_velocity_covariances(self.velocity_covariances)
 
     # ------------------------------------------------------------------ properties
     @property
@@ -421,6 +418,19 @@ def load_primitive(
     import lfd_torch.ds  # noqa: F401  (registers the subclasses)
 
     return StablePrimitive.load(path, dtype=dtype, device=device)
+
+
+def check_velocity_covariances(S: Tensor, name: str = "velocity_covariances") -> None:
+    """Raise ShapeMismatchError (naming ``name``) unless the finite (K, d, d) S is symmetric (to rtol 1e-6) and positive
+    definite (the smallest eigenvalue of its symmetric part > 0, in float64)."""
+    Sv = S.to(torch.float64)
+    if not torch.allclose(Sv, Sv.transpose(-2, -1), rtol=1e-6, atol=0.0):
+        raise ShapeMismatchError(f"{name} must be symmetric positive definite (each S_k equal to its transpose)")
+    low = torch.linalg.eigvalsh(0.5 * (Sv + Sv.transpose(-2, -1)))[..., 0]
+    if bool((low <= 0).any()):
+        k = int(torch.nonzero(low <= 0)[0])
+        raise ShapeMismatchError(f"{name} must be symmetric positive definite; S_{k} has the eigenvalue "
+                                 f"{float(low[k]):.3g}")  # fmt: skip
 
 
 def residual_velocity_covariances(

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
-from lfd_torch.utils import safe_magnitude
+from lfd_torch.utils import check_tensor, safe_magnitude
 
 __all__ = ["as_trajectories", "check_finite", "check_lengths", "resolve_mask"]
 
@@ -22,16 +22,17 @@ def as_trajectories(*named: tuple[str, Tensor], min_dim: int = 1) -> tuple[Tenso
         min_dim: smallest admissible state dimension d.
 
     Returns:
-        The tensors, cast to their promoted floating dtype.
+        The tensors, cast to their promoted floating dtype (float32 with float64 gives float64).
+
+    Raises:
+        ShapeMismatchError: not a tensor, not 3-D, a dtype outside :data:`lfd_torch.utils.FLOAT_DTYPES` (float32,
+            float64), shapes or devices that differ, or d below ``min_dim``.
     """
     dtype = None
     for name, x in named:
-        if not isinstance(x, Tensor):
-            raise ShapeMismatchError(f"{name} must be a torch.Tensor of shape (B, T, d), got {type(x).__name__}")
-        if x.ndim != 3:
-            raise ShapeMismatchError(f"{name} must have shape (B, T, d), got {tuple(x.shape)}")
-        if not x.is_floating_point():
-            raise InvalidArgumentError(f"{name} must be floating point, got {x.dtype}")
+        # a tensor of 3 dimensions in FLOAT_DTYPES (float16 / bfloat16 would overflow the squared distances);
+        # finiteness is checked on the valid samples only (check_finite)
+        check_tensor(x, name, ndim=3, finite=False, shape_hint="(B, T, d)")
         dtype = x.dtype if dtype is None else torch.promote_types(dtype, x.dtype)
     (first_name, first), *rest = named
     for name, x in rest:

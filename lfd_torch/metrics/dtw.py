@@ -19,8 +19,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.errors import ShapeMismatchError, TooFewSamplesError
 from lfd_torch.metrics._checks import check_finite, check_lengths
+from lfd_torch.utils import check_tensor
 
 __all__ = ["dtw_distance"]
 
@@ -30,13 +31,8 @@ _CPU_CELLS_PER_DIAGONAL = 1 << 17
 
 
 def _check_pair(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
-    for name, x in (("a", a), ("b", b)):
-        if not isinstance(x, Tensor):
-            raise ShapeMismatchError(f"{name} must be a torch.Tensor of shape (B, T, d), got {type(x).__name__}")
-        if x.ndim != 3:
-            raise ShapeMismatchError(f"{name} must have shape (B, T, d), got {tuple(x.shape)}")
-        if not x.is_floating_point():
-            raise InvalidArgumentError(f"{name} must be floating point, got {x.dtype}")
+    for name, x in (("a", a), ("b", b)):  # float32 / float64 (FLOAT_DTYPES); finiteness on valid samples later
+        check_tensor(x, name, ndim=3, finite=False, shape_hint="(B, T, d)")
     if a.shape[0] != b.shape[0]:
         raise ShapeMismatchError(f"a holds {a.shape[0]} trajectories, b holds {b.shape[0]}")
     if a.shape[2] != b.shape[2]:
@@ -81,7 +77,8 @@ def dtw_distance(
         (B,) distances in data units, dtype of the (promoted) inputs, on their device.
 
     Raises:
-        ShapeMismatchError: inputs not 3-D, different B or d, lengths of the wrong shape or above the padding.
+        ShapeMismatchError: inputs not 3-D or not float32 / float64 (float16 and bfloat16 overflow the squared
+            costs), different B or d, lengths of the wrong shape or above the padding.
         NonFiniteError: NaN or Inf at a valid sample.
         TooFewSamplesError: a trajectory with no valid sample.
     """

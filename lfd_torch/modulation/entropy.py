@@ -47,6 +47,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
+from lfd_torch.ds.primitive import check_velocity_covariances
 from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
 from lfd_torch.utils import check_tensor
 
@@ -89,6 +90,20 @@ def _check_positions(primitive: Any, x: Tensor, name: str = "x") -> None:
         raise NonFiniteError(f"{name} contains NaN or Inf")
 
 
+def _check_velocity_covariances(S: Tensor, x: Tensor) -> None:
+    """An override S_k of shape (K, d, d) (checked by the caller) validated as the
+    :class:`~lfd_torch.ds.StablePrimitive` constructor validates its ``velocity_covariances``: the dtype and
+    device of ``x`` (the primitive's), finite, symmetric (``allclose`` to its transpose, rtol 1e-6) and positive
+    definite (smallest eigenvalue of the symmetric part > 0, in float64).
+
+    Raises:
+        ShapeMismatchError: another dtype or device; not symmetric, or not positive definite (naming
+            ``velocity_covariances``). NonFiniteError: NaN or Inf.
+    """
+    check_tensor(S, "velocity_covariances", dtype=x.dtype, device=x.device, bounded=False, shape_hint="(K, d, d)")
+    check_velocity_covariances(S)
+
+
 def velocity_mixture(primitive: Any, x: Tensor, *, velocity_covariances: Tensor | None = None) -> VelocityMixture:
     """The velocity mixture of ``primitive`` at ``x`` (module docstring).
 
@@ -96,15 +111,18 @@ def velocity_mixture(primitive: Any, x: Tensor, *, velocity_covariances: Tensor 
         primitive: a :class:`~lfd_torch.ds.StablePrimitive` (or any object with ``gmm``, ``A``, ``attractor`` and,
             unless overridden, ``velocity_covariances``).
         x: (..., d) positions, same dtype and device as the primitive.
-        velocity_covariances: optional (K, d, d) S_k replacing ``primitive.velocity_covariances``.
+        velocity_covariances: optional (K, d, d) S_k replacing ``primitive.velocity_covariances``: symmetric
+            positive definite, finite, in the dtype and on the device of ``x`` (checked as the primitive's
+            constructor checks its own).
 
     Returns:
         :class:`VelocityMixture` with (..., K) log weights, (..., K, d) means and (K, d, d) covariances.
 
     Raises:
         ShapeMismatchError: ``x`` or ``velocity_covariances`` of the wrong shape, dtype or device.
-        NonFiniteError: NaN or Inf in ``x``.
-        InvalidArgumentError: ``primitive`` is not a primitive, or it has no velocity covariances and none are given.
+        NonFiniteError: NaN or Inf in ``x`` or ``velocity_covariances``.
+        InvalidArgumentError: ``primitive`` is not a primitive, it has no velocity covariances and none are given, or
+            ``velocity_covariances`` is not symmetric positive definite.
     """
     if not all(isinstance(getattr(primitive, a, None), Tensor) for a in ("attractor", "A")) \
             or not hasattr(primitive, "gmm"):  # fmt: skip
@@ -122,6 +140,8 @@ def velocity_mixture(primitive: Any, x: Tensor, *, velocity_covariances: Tensor 
     if not isinstance(S, Tensor) or tuple(S.shape) != (K, d, d):
         shape = tuple(S.shape) if isinstance(S, Tensor) else type(S).__name__
         raise ShapeMismatchError(f"velocity_covariances must have shape {(K, d, d)}, got {shape}")
+    if velocity_covariances is not None:  # the primitive's own S_k were validated by its constructor
+        _check_velocity_covariances(S, x)
     S = S.to(dtype=x.dtype, device=x.device)
     log_w = primitive.gmm.log_prob_components(x)  # (..., K): log pi_k + log N(x; mu_k^x, Sigma_k^x)
     means = torch.einsum("kij,...j->...ki", primitive.A, x - primitive.attractor)
@@ -161,6 +181,49 @@ def _pair_factors(covariances: Tensor) -> tuple[Tensor, Tensor]:
     return L_inv, torch.diagonal(L, dim1=-2, dim2=-1).log().sum(-1)
 
 
+def _check_batch(name: str, batch: tuple[int, ...], means: Tensor) -> None:
+    """``batch`` (the leading shape of ``name``) broadcasts with the batch shape of ``means`` (..., K, d)."""
+    try:
+        torch.broadcast_shapes(torch.Size(batch), means.shape[:-2])
+    except RuntimeError:
+        raise ShapeMismatchError(f"{name} has the batch shape {tuple(batch)}, which does not broadcast with the "
+                                 f"batch shape {tuple(means.shape[:-2])} of means") from None  # fmt: skip
+
+
+def _check_covariances(covariances: Any, means: Tensor) -> None:
+    """(..., K, d, d) covariances without NaN/Inf in the dtype and on the device of ``means`` (..., K, d), with K
+    and d those of ``means`` and a batch shape that broadcasts with theirs."""
+    check_tensor(covariances, "covariances", min_ndim=3, dtype=means.dtype, device=means.device, bounded=False,
+                 shape_hint="(..., K, d, d)")  # fmt: skip
+    K, d = means.shape[-2:]
+    if tuple(covariances.shape[-3:]) != (K, d, d):
+        raise ShapeMismatchError(f"covariances must have shape (..., {K}, {d}, {d}) (K and d of means "
+                                 f"{tuple(means.shape)}), got {tuple(covariances.shape)}")  # fmt: skip
+    _check_batch("covariances", tuple(covariances.shape[:-3]), means)
+
+
+def _check_factors(factors: Any, means: Tensor) -> None:
+    """``factors`` the (L_inv (..., K, K, d, d), half_log_det (..., K, K)) of :func:`pair_factors`, without
+    NaN/Inf, in the dtype and on the device of ``means``, for the K and d of ``means`` and a broadcasting batch."""
+    if not (isinstance(factors, tuple) and len(factors) == 2 and all(isinstance(t, Tensor) for t in factors)):
+        got = (f"a tuple of ({', '.join(type(t).__name__ for t in factors)})" if isinstance(factors, tuple)
+               else type(factors).__name__)  # fmt: skip
+        raise ShapeMismatchError(f"factors must be the (L_inv, half_log_det) tensors of pair_factors, got {got}")
+    L_inv, half = factors
+    K, d = means.shape[-2:]
+    check_tensor(L_inv, "factors[0] (L_inv)", min_ndim=4, dtype=means.dtype, device=means.device, bounded=False,
+                 shape_hint="(..., K, K, d, d)")  # fmt: skip
+    check_tensor(half, "factors[1] (half_log_det)", min_ndim=2, dtype=means.dtype, device=means.device,
+                 bounded=False, shape_hint="(..., K, K)")  # fmt: skip
+    if tuple(L_inv.shape[-4:]) != (K, K, d, d) or tuple(half.shape[-2:]) != (K, K):
+        raise ShapeMismatchError(
+            f"factors must be pair_factors of covariances with the K = {K} and d = {d} of means: shapes "
+            f"(..., {K}, {K}, {d}, {d}) and (..., {K}, {K}), got {tuple(L_inv.shape)} and {tuple(half.shape)}"
+        )
+    _check_batch("factors", tuple(L_inv.shape[:-4]), means)
+    _check_batch("factors", tuple(half.shape[:-2]), means)
+
+
 def pairwise_log_overlap(
     means: Tensor, covariances: Tensor | None = None, *, factors: tuple[Tensor, Tensor] | None = None
 ) -> Tensor:
@@ -168,28 +231,25 @@ def pairwise_log_overlap(
 
     Args:
         means: (..., K, d) component means.
-        covariances: (K, d, d) or broadcastable (..., K, d, d) symmetric positive-definite covariances.
+        covariances: (K, d, d) or broadcastable (..., K, d, d) symmetric positive-definite covariances, in the dtype
+            and on the device of ``means``.
         factors: precomputed :func:`pair_factors` of the covariances (then ``covariances`` is not used).
 
     Returns:
         (..., K, K) symmetric tensor.
 
     Raises:
-        ShapeMismatchError: ``means`` not a float (..., K, d) tensor, or d not that of the covariances.
-        NonFiniteError: NaN or Inf in ``means`` or ``covariances``.
+        ShapeMismatchError: ``means`` not a float (..., K, d) tensor; covariances (or factors) whose K, d or batch
+            shape do not agree with the means', of another dtype or device, or factors that are not a
+            (L_inv, half_log_det) pair.
+        NonFiniteError: NaN or Inf in ``means``, ``covariances`` or ``factors``.
         InvalidArgumentError: some S_i + S_j is not positive definite.
     """
     check_tensor(means, "means", min_ndim=2, bounded=False, shape_hint="(..., K, d)")
     if factors is None:
-        check_tensor(covariances, "covariances", min_ndim=3, bounded=False, shape_hint="(..., K, d, d)")
-        d_cov = covariances.shape[-1]
-    elif not (isinstance(factors, tuple) and len(factors) == 2 and all(isinstance(t, Tensor) for t in factors)):
-        raise ShapeMismatchError(f"factors must be the (L_inv, half_log_det) tensors of pair_factors, got "
-                                 f"{type(factors).__name__}")  # fmt: skip
+        _check_covariances(covariances, means)
     else:
-        d_cov = factors[0].shape[-1]
-    if means.shape[-1] != d_cov:
-        raise ShapeMismatchError(f"means have d = {means.shape[-1]}, the covariances d = {d_cov}")
+        _check_factors(factors, means)
     return _pairwise_log_overlap(means, covariances, factors=factors)
 
 
@@ -215,13 +275,17 @@ def mixture_renyi_entropy(
         covariances: (K, d, d) or broadcastable (..., K, d, d) covariances.
         factors: optional precomputed :func:`pair_factors` of ``covariances`` (e.g. gathered per row).
 
+    ``log_weights``, ``covariances`` and ``factors`` share the dtype and device of ``means`` (the result's); a
+    mixed call is a ShapeMismatchError naming the argument (convert it with ``.to(means.dtype)``).
+
     Returns:
         (...) H2, computed with one ``logsumexp`` over the K^2 pairs (+inf only if every weight is zero).
 
     Raises:
-        ShapeMismatchError: inconsistent shapes.
+        ShapeMismatchError: inconsistent shapes (also batch shapes that do not broadcast), dtypes or devices, or
+            ``factors`` that are not the (L_inv, half_log_det) of :func:`pair_factors` for these K and d.
         TooFewSamplesError: no component (K = 0).
-        NonFiniteError: NaN or +inf in ``log_weights``, NaN or Inf in ``means`` or ``covariances``.
+        NonFiniteError: NaN or +inf in ``log_weights``, NaN or Inf in ``means``, ``covariances`` or ``factors``.
         InvalidArgumentError: some S_i + S_j is not positive definite.
     """
     for name, t in (("log_weights", log_weights), ("means", means), ("covariances", covariances)):
@@ -236,12 +300,14 @@ def mixture_renyi_entropy(
         raise ShapeMismatchError(f"covariances must have shape (..., {K}, {d}, {d}), got {tuple(covariances.shape)}")
     if K == 0:
         raise TooFewSamplesError("means has K = 0 components; a mixture needs at least one")
-    check_tensor(log_weights, "log_weights", finite=False)
+    check_tensor(means, "means", bounded=False)
+    check_tensor(log_weights, "log_weights", finite=False, dtype=means.dtype, device=means.device)
     if bool((torch.isnan(log_weights) | (log_weights == math.inf)).any()):
         raise NonFiniteError("log_weights contains NaN or +inf (-inf, a zero weight, is allowed)")
-    check_tensor(means, "means", bounded=False)
     if factors is None:
-        check_tensor(covariances, "covariances", bounded=False)
+        _check_covariances(covariances, means)
+    else:
+        _check_factors(factors, means)
     return _mixture_renyi_entropy(log_weights, means, covariances, factors=factors)
 
 

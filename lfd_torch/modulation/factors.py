@@ -61,7 +61,7 @@ def large_scale_gain(log_p_own: Tensor, log_p_other: Tensor, lambda_limit: float
     """
     limit = check_lambda_limit(lambda_limit)
     _check_log_densities(log_p_own=log_p_own, log_p_other=log_p_other)
-    return large_scale_gain_unchecked(log_p_own, log_p_other, limit)
+    return large_scale_gain_unchecked(log_p_own, log_p_other.to(log_p_own.dtype), limit)
 
 
 def _check_log_densities(**named: object) -> None:
@@ -110,7 +110,8 @@ def large_scale_factor(log_p_own: Tensor, log_p_other: Tensor, c: Tensor, lambda
     """
     limit = check_lambda_limit(lambda_limit)
     _check_log_densities(log_p_own=log_p_own, log_p_other=log_p_other, c=c)
-    return -torch.sign(c) * large_scale_gain_unchecked(log_p_own, log_p_other, limit)
+    dtype = log_p_own.dtype  # the first argument's (module docstring)
+    return -torch.sign(c.to(dtype)) * large_scale_gain_unchecked(log_p_own, log_p_other.to(dtype), limit)
 
 
 def small_scale_factor(h2: Tensor, h2_ref: Tensor | float) -> Tensor:
@@ -118,19 +119,30 @@ def small_scale_factor(h2: Tensor, h2_ref: Tensor | float) -> Tensor:
 
     Args:
         h2: (...) entropy H2(x).
-        h2_ref: (...) or scalar threshold H2(x_r).
+        h2_ref: (...) or scalar threshold H2(x_r), a tensor broadcastable with ``h2`` (cast to its dtype) or a
+            number; +-inf is allowed, NaN is not.
 
     Returns:
         (...) factors in [0, 1]; exactly 1 where h2 <= h2_ref.
+
+    Raises:
+        InvalidArgumentError: ``h2`` or ``h2_ref`` not a real floating tensor (or, for ``h2_ref``, a number), or a
+            NaN number ``h2_ref``.
+        ShapeMismatchError: shapes that do not broadcast, or tensors on different devices.
+        NonFiniteError: NaN in ``h2`` or in a tensor ``h2_ref``.
     """
-    if not isinstance(h2, Tensor) or h2.is_complex() or not h2.is_floating_point():
-        raise InvalidArgumentError(f"h2 must be a real floating tensor, got {getattr(h2, 'dtype', type(h2).__name__)}")
-    if not isinstance(h2_ref, Tensor):  # a Python number is checked here; tensors (the engine's) are not synced
+    if isinstance(h2_ref, Tensor):
+        _check_log_densities(h2=h2, h2_ref=h2_ref)
+    else:
         from lfd_torch.utils import check_float
 
+        _check_log_densities(h2=h2)
         check_float(h2_ref, "h2_ref", allow_inf=True)
-    elif h2_ref.is_complex() or not h2_ref.is_floating_point():
-        raise InvalidArgumentError(f"h2_ref must be a real floating tensor or a number, got {h2_ref.dtype}")
+    return small_scale_factor_unchecked(h2, h2_ref)
+
+
+def small_scale_factor_unchecked(h2: Tensor, h2_ref: Tensor | float) -> Tensor:
+    """:func:`small_scale_factor` without its argument checks (no device sync), for the modulation's hot path."""
     ref = torch.as_tensor(h2_ref, dtype=h2.dtype, device=h2.device)
     inside = h2 <= ref
     gap = torch.where(inside, torch.zeros_like(h2), ref - h2)  # <= 0, never inf - inf

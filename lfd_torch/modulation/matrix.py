@@ -39,16 +39,26 @@ class GoalDirection(NamedTuple):
 
 def goal_direction(x: Tensor, attractor: Tensor, *, dim: int = -1) -> GoalDirection:
     """:func:`goal_direction_unchecked` after checking x (..., d) and attractor (d,): real floating tensors of one
-    dtype, finite and below the overflow magnitude (a typed error names the argument)."""
+    dtype, finite and below the overflow magnitude (a typed error names the argument).
+
+    With the vector axis last (``dim`` -1, the documented layout) the attractor must have shape exactly (d,): a
+    (B, d) or (d, 1) attractor would broadcast into a different goal per row. Other ``dim`` values (feature-major
+    points, the kernel's layout) keep the broadcasting attractor of :func:`goal_direction_unchecked`.
+
+    Raises:
+        ShapeMismatchError: not float tensors, dtypes or devices that differ, or an attractor that is not (d,).
+        NonFiniteError: NaN, Inf or an overflowing magnitude in ``x`` or ``attractor``.
+    """
     from lfd_torch.errors import ShapeMismatchError
     from lfd_torch.utils import check_tensor
 
     check_tensor(x, "x", min_ndim=1)
     check_tensor(attractor, "attractor", min_ndim=1, dtype=x.dtype, device=x.device)
-    if dim not in (-1, x.ndim - 1) or attractor.ndim != 1:  # feature-major calls are the kernel's, unchecked
+    if dim not in (-1, x.ndim - 1):  # feature-major calls are the kernel's, unchecked
         return goal_direction_unchecked(x, attractor, dim=dim)
-    if attractor.shape[0] != x.shape[-1]:
-        raise ShapeMismatchError(f"x has d = {x.shape[-1]}, attractor has shape {tuple(attractor.shape)}")
+    if tuple(attractor.shape) != (x.shape[-1],):
+        raise ShapeMismatchError(f"attractor must have shape (d,) = ({x.shape[-1]},) for x of shape "
+                                 f"{tuple(x.shape)}, got {tuple(attractor.shape)}")  # fmt: skip
     return goal_direction_unchecked(x, attractor, dim=dim)
 
 
@@ -71,12 +81,13 @@ def goal_direction_unchecked(x: Tensor, attractor: Tensor, *, dim: int = -1) -> 
 
 
 def _check_vectors(f: Tensor, unit: Tensor, dim: int = -1) -> None:
-    """f and unit: float tensors without NaN/Inf, of one vector length along ``dim``, broadcastable."""
+    """f and unit: float tensors without NaN/Inf, of one dtype and device (f's: the result's), of one vector length
+    along ``dim``, broadcastable."""
     from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
     from lfd_torch.utils import check_int, check_tensor
 
     check_tensor(f, "f", min_ndim=1, bounded=False, shape_hint="(..., d)")
-    check_tensor(unit, "unit", min_ndim=1, bounded=False, shape_hint="(..., d)")
+    check_tensor(unit, "unit", min_ndim=1, dtype=f.dtype, device=f.device, bounded=False, shape_hint="(..., d)")
     check_int(dim, "dim")
     if not (-f.ndim <= dim < f.ndim and -unit.ndim <= dim < unit.ndim):
         raise InvalidArgumentError(f"dim = {dim} is not an axis of f {tuple(f.shape)} and unit {tuple(unit.shape)}")
@@ -123,7 +134,8 @@ def radial_component(f: Tensor, unit: Tensor, *, dim: int = -1) -> Tensor:
         (...) tensor.
 
     Raises:
-        ShapeMismatchError: not float tensors, or d (or the batch shapes) that do not agree.
+        ShapeMismatchError: not float tensors, dtypes or devices that differ, or d (or the batch shapes) that do not
+            agree.
         NonFiniteError: NaN or Inf in ``f`` or ``unit``.
     """
     _check_vectors(f, unit, dim)
@@ -145,10 +157,12 @@ def modulate(f: Tensor, unit: Tensor, d1: Tensor | float, d: Tensor | float) -> 
         d: (...) eigenvalue of the d - 1 directions orthogonal to e_g (dimensionless).
 
     Returns:
-        (..., d) modulated velocities, dtype and device of ``f``.
+        (..., d) modulated velocities, dtype and device of ``f`` (``unit`` must share them; tensor eigenvalues are
+        cast to that dtype).
 
     Raises:
-        ShapeMismatchError: not float tensors, or d (or the batch shapes) that do not agree.
+        ShapeMismatchError: not float tensors, a ``unit`` of another dtype or device, or d (or the batch shapes)
+            that do not agree.
         NonFiniteError, InvalidArgumentError: NaN or Inf in ``f``, ``unit``, ``d1`` or ``d`` (naming it).
     """
     _check_vectors(f, unit)

@@ -67,7 +67,11 @@ from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError, UnknownNameError
 from lfd_torch.modulation.entropy import reference_entropy, renyi_entropy
-from lfd_torch.modulation.factors import check_lambda_limit, large_scale_gain_unchecked, small_scale_factor
+from lfd_torch.modulation.factors import (
+    check_lambda_limit,
+    large_scale_gain_unchecked,
+    small_scale_factor_unchecked,
+)
 from lfd_torch.modulation.matrix import goal_direction_unchecked, radial_component_unchecked
 
 __all__ = [
@@ -158,6 +162,8 @@ def _as_batch(value: Any, name: str, x: Tensor, mode: str) -> Tensor:
     if value is None:
         raise InvalidArgumentError(f"{name} is required in modulation mode {mode!r}")
     if isinstance(value, Tensor):
+        if value.is_complex() or value.dtype == torch.bool:  # .to() would drop an imaginary part with a warning
+            raise ShapeMismatchError(f"{name} must be a real tensor or a number, got {value.dtype}")
         if value.device != x.device:
             raise ShapeMismatchError(f"{name} is on {value.device}, x is on {x.device}")
         t = value.to(x.dtype)
@@ -268,7 +274,7 @@ def modulated_velocity_unchecked(
         outside = torch.zeros(batch, dtype=torch.bool, device=x.device)
     if mode in ("small", "full"):
         uncertain = (h2 > h2_ref) & ~outside
-        lam_ss = small_scale_factor(h2, h2_ref)
+        lam_ss = small_scale_factor_unchecked(h2, h2_ref)
         small = lam_ss.unsqueeze(dim) * f - a.unsqueeze(dim) * unit
         out = torch.where(uncertain.unsqueeze(dim), small, out)
         branch = torch.where(uncertain, torch.full_like(branch, int(Branch.SMALL_SCALE)), branch)
@@ -300,8 +306,9 @@ def modulated_velocity_single(
 
     Its checks cost a few float comparisons (it runs once per control tick): an unknown ``mode``
     (UnknownNameError), ``e`` and ``f`` of different lengths (ShapeMismatchError), NaN or Inf in ``e`` or ``f``
-    or NaN in a density or entropy the mode uses (NonFiniteError), each naming the argument. None stands for a
-    value the branch taken does not need (e.g. ``h2`` off the small-scale branch)."""
+    or NaN in a density or entropy the mode uses (NonFiniteError), None where the branch taken needs the value
+    (InvalidArgumentError), each naming the argument. None stands for a value the branch taken does not need (e.g.
+    ``h2`` on the large-scale branch)."""
     if mode not in MODULATION_MODES:
         _check_mode(mode)
     if len(e) != len(f):
@@ -324,10 +331,16 @@ def modulated_velocity_single(
     unit = [v / r for v in e]
     c = sum(a * b for a, b in zip(f, unit))
     a = max(abs(c), radial_floor * norm_f)
+    if large and (log_p_own is None or log_p_other is None):
+        raise InvalidArgumentError(f"{'log_p_own' if log_p_own is None else 'log_p_other'} is None, but mode {mode!r} "
+                                   "compares the subtask densities here")  # fmt: skip
     if large and log_p_own < log_p_other:
         log_ratio = log_p_other - log_p_own
         s = math.exp(min(max(0.0 if math.isnan(log_ratio) else log_ratio, 0.0), math.log(lambda_limit)))
         return [-(a * s) * u for u in unit], Branch.LARGE_SCALE
+    if small and (h2 is None or h2_ref is None):
+        raise InvalidArgumentError(f"{'h2' if h2 is None else 'h2_ref'} is None, but mode {mode!r} compares the "
+                                   "entropy with its threshold here (off the large-scale branch)")  # fmt: skip
     if small and h2 > h2_ref:
         lam_ss = math.exp(h2_ref - h2)
         return [lam_ss * v - a * u for v, u in zip(f, unit)], Branch.SMALL_SCALE

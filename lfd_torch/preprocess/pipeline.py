@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from lfd_torch.data.demos import Demos
 from lfd_torch.errors import InvalidArgumentError, UnknownNameError
-from lfd_torch.utils import check_int
+from lfd_torch.utils import check_float, check_int
 from lfd_torch.preprocess.regularize import (
     MAX_SAMPLES,
     MAX_WINDOW,
@@ -41,7 +41,8 @@ class Preprocess:
         resample_mode: "time" or "arc_length".
         velocity_scheme: "central", "forward", "backward", or "given" to keep the velocities as loaded
             (only honoured when nothing upstream changed the positions).
-        trim_position_tol, trim_velocity_tol: cut the still tail near the attractor (None disables); data units.
+        trim_position_tol, trim_velocity_tol: cut the still tail near the attractor (None disables); finite numbers
+            >= 0, data units.
         screen_threshold: drop dimensions whose variance share is below it (None disables).
         subsample_step: keep every k-th sample (1 keeps all).
     """
@@ -74,10 +75,8 @@ class Preprocess:
         if self.resample_mode not in ("time", "arc_length"):
             raise UnknownNameError("resample_mode", self.resample_mode, ("time", "arc_length"))
         _int_at_least(self.subsample_step, 1, "subsample_step")
-        for name in ("trim_position_tol", "trim_velocity_tol"):
-            v = getattr(self, name)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0):
-                raise InvalidArgumentError(f"{name} must be a number >= 0 or None, got {v!r}")
+        for name in ("trim_position_tol", "trim_velocity_tol"):  # the checks trim_still_tail makes when called
+            check_float(getattr(self, name), name, low=0.0, allow_none=True)
         v = self.screen_threshold
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < 1):
             raise InvalidArgumentError(f"screen_threshold must be a number in [0, 1) or None, got {v!r}")
