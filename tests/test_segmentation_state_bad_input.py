@@ -16,7 +16,7 @@ import torch
 from lfd_torch.data import Demos
 from lfd_torch.errors import InvalidArgumentError, StoreError
 from lfd_torch.segmentation import FixedSegmenter, Segmentation, segment
-from lfd_torch.segmentation.dwell import dwell_log_likelihood, dwell_log_prob, dwell_prior
+from lfd_torch.segmentation.dwell import dwell_log_likelihood, dwell_log_prob, dwell_prior, dwell_start
 
 F64 = torch.float64
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,31 +51,26 @@ def test_short_demonstrations_segment_with_the_dwell_cue(T: int, kw: dict) -> No
     assert not [w for w in caught if "degrees of freedom" in str(w.message)], [str(w.message) for w in caught]
 
 
-@pytest.mark.parametrize("n_seen", [0, 1])
-def test_dwell_term_has_a_finite_fallback_for_fewer_than_two_values(n_seen: int) -> None:
-    """Property (dwell.dwell_log_likelihood docstring): with fewer than 2 points in the mask a NaN start (mu, sigma^2:
-    the sample mean and variance of < 2 values) gives a finite term, mu -> 0 where undefined and sigma^2 -> the
-    prior's E[sigma^2] = 0.1; with 2 or more points the given parameters are used unchanged."""
+@pytest.mark.parametrize("n_seen", [0, 1, 2, 5])
+def test_dwell_start_is_finite_for_fewer_than_two_values(n_seen: int) -> None:
+    """Property (dwell.dwell_start docstring): the chains' start is (mean of c, 0) and the variance of c floored at
+    1e-6 (torch's own mean and var, bit for bit) with 2 or more values; with fewer, where those are undefined, mu -> 0
+    (with none) or the one value, and sigma^2 -> the prior's E[sigma^2] = 0.1, so the dwell term is finite."""
+    seen = torch.tensor([0.3, -0.2, 0.1, 0.25, -0.05], dtype=F64)[:n_seen]
+    beta, noise = dwell_start(seen)
+    assert beta.shape == (2,) and noise.shape == () and beta.dtype == noise.dtype == F64
+    if n_seen >= 2:
+        assert torch.equal(beta, torch.stack([seen.mean(), torch.zeros((), dtype=F64)]))
+        assert torch.equal(noise, seen.var().clamp_min(1e-6))
+    else:
+        assert beta.tolist() == [seen.sum().item(), 0.0] and noise.item() == 0.1
     c = torch.tensor([[0.0, 0.3, -0.2, 0.1]], dtype=F64)
     mask = torch.zeros(1, 4, dtype=torch.bool)
-    mask[0, 1 : 1 + n_seen] = True
-    seen = c[mask]
-    mu = seen.mean() if n_seen else torch.tensor(float("nan"), dtype=F64)
-    beta = torch.stack([mu, torch.zeros_like(mu)]).expand(2, 2).clone()
-    noise = torch.full((2,), float("nan"), dtype=F64)
-    ll = dwell_log_likelihood(c, mask, beta, noise)
-    assert ll.shape == (2, 1, 4, 2) and bool(torch.isfinite(ll).all())
-    want = -0.5 * (c[0, 1] - (mu if n_seen else 0.0)) ** 2 / 0.1 - 0.5 * torch.log(torch.tensor(2 * torch.pi * 0.1,
-                                                                                                  dtype=F64))
-    assert torch.allclose(ll[0, 0, 1, 0], want if n_seen else torch.zeros((), dtype=F64))
-    assert bool((ll[:, :, ~mask[0]] == 0).all())
+    mask[0, 1 : 1 + min(n_seen, 3)] = True
+    ll = dwell_log_likelihood(c, mask, beta.expand(2, 2), noise.expand(2))
+    assert ll.shape == (2, 1, 4, 2) and bool(torch.isfinite(ll).all()) and bool((ll[:, :, ~mask[0]] == 0).all())
     phase = torch.ones(2, 1, 4, dtype=torch.long)
-    assert bool(torch.isfinite(dwell_log_prob(dwell_prior(), c, mask, phase, beta, noise)).all())
-    # enough values: the parameters as given (a NaN there is not the degenerate case and is not hidden)
-    full = torch.ones(1, 4, dtype=torch.bool)
-    good = torch.tensor([[0.05, 0.2]], dtype=F64)
-    ref = -0.5 * (c[0] - 0.05) ** 2 / 0.3 - 0.5 * torch.log(torch.tensor(2 * torch.pi * 0.3, dtype=F64))
-    torch.testing.assert_close(dwell_log_likelihood(c, full, good, torch.tensor([0.3], dtype=F64))[0, 0, :, 0], ref)
+    assert bool(torch.isfinite(dwell_log_prob(dwell_prior(), c, mask, phase, beta.expand(2, 2), noise.expand(2))).all())
 
 
 # ---------------------------------------------------------------------------------------------- 2. stored state

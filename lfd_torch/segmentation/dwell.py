@@ -110,6 +110,7 @@ __all__ = [
     "dwell_evidence",
     "dwell_log_likelihood",
     "dwell_log_prob",
+    "dwell_start",
     "posterior_summary",
     "PACE_RATIOS",
 ]
@@ -244,30 +245,24 @@ def dwell_evidence(prior: FieldPrior, c: Tensor, mask: Tensor, phase: Tensor,
     return torch.logsumexp(torch.stack(out), 0) - math.log(len(out))
 
 
-def _few_values_fallback(mask: Tensor, beta: Tensor, noise: Tensor) -> tuple[Tensor, Tensor]:
-    """(beta, noise) with a finite stand-in where the mask holds fewer than 2 dwell values.
+def dwell_start(seen: Tensor) -> tuple[Tensor, Tensor]:
+    """The chains' neutral start from the dwell values ``seen`` (n,) under the mask: (mu, delta) = (mean of c, 0) (2,)
+    (no dwell effect until the states say otherwise) and sigma^2 = their variance, floored at 1e-6 ().
 
-    The chains start from the sample mean and variance of c over the mask (delta = 0); with one value the variance
-    is undefined and with none the mean too (NaN: short sequences, or a ``min_length`` near half a sequence, leave
-    at most one grid point between the first and the last run's minimum duration). Then a non-finite mu is 0 (c is
-    a log ratio to the median) and a non-finite sigma^2 the prior's E[sigma^2] (:data:`_NOISE_MEAN`); with at most
-    one point in the mask the term hardly constrains the labelling either way, and the Gibbs step draws the
-    parameters from their (proper) NIG posterior from then on. Elsewhere ``beta`` and ``noise`` are returned as
-    given (selected, not recomputed: the result is bit for bit the same)."""
-    few = mask.sum() < 2  # a 0-d tensor: no host synchronisation in the sampler's sweeps
-    beta = torch.where(few & ~torch.isfinite(beta), torch.zeros_like(beta), beta)
-    noise = torch.where(few & ~torch.isfinite(noise), torch.full_like(noise, _NOISE_MEAN), noise)
-    return beta, noise
+    With fewer than 2 values (short sequences, or a ``min_length`` near half a sequence, leave at most one grid point
+    between the first and the last run's minimum duration) the sample variance, and with none the mean, are undefined:
+    then mu = 0 (c is a log ratio to the median) and sigma^2 = the prior's E[sigma^2] (:data:`_NOISE_MEAN`); the term
+    hardly constrains the labelling either way, and the Gibbs step draws the parameters from their (proper) NIG
+    posterior from the first sweep on."""
+    mu = seen.mean() if seen.numel() else seen.new_zeros(())
+    noise = seen.var().clamp_min(1e-6) if seen.numel() >= 2 else seen.new_full((), _NOISE_MEAN)
+    return torch.stack([mu, torch.zeros_like(mu)]), noise
 
 
 def dwell_log_likelihood(c: Tensor, mask: Tensor, beta: Tensor, noise: Tensor) -> Tensor:
     """(B, N, T, 2) log N(c_t; mu + delta b, sigma^2) for b = 0 (inside a run) and b = 1 (first point of a run),
-    0 outside the mask; c (N, T) or (B, N, T), beta (B, 2) = (mu, delta), noise (B,) = sigma^2.
-
-    Where the mask holds fewer than 2 values, a non-finite mu, delta or sigma^2 (the chains' start from the
-    sample mean and variance of c, undefined there) is replaced by a finite one (:func:`_few_values_fallback`)."""
+    0 outside the mask; c (N, T) or (B, N, T), beta (B, 2) = (mu, delta), noise (B,) = sigma^2."""
     N, T = mask.shape
-    beta, noise = _few_values_fallback(mask, beta, noise)
     means = torch.stack([beta[:, 0], beta[:, 0] + beta[:, 1]], -1).unsqueeze(-1)  # (B, 2, 1)
     cov = noise.view(-1, 1, 1, 1).expand(-1, 2, 1, 1)
     ll = gaussian_log_density(c.reshape(-1, N * T, 1), means, cov)  # (B, N T, 2)
@@ -276,9 +271,7 @@ def dwell_log_likelihood(c: Tensor, mask: Tensor, beta: Tensor, noise: Tensor) -
 
 def dwell_log_prob(prior: FieldPrior, c: Tensor, mask: Tensor, phase: Tensor, beta: Tensor, noise: Tensor) -> Tensor:
     """(B,) log p(c | b, mu, delta, sigma^2) + log NIG(mu, delta, sigma^2): the dwell part of the joint log
-    probability of B chains with phases (B, N, T); a non-finite start where the mask holds fewer than 2 values as in
-    :func:`dwell_log_likelihood`."""
-    beta, noise = _few_values_fallback(mask, beta, noise)
+    probability of B chains with phases (B, N, T)."""
     ll = dwell_log_likelihood(c, mask, beta, noise)
     start = ((phase == 0) & mask).long().unsqueeze(-1)
     lp = ll.gather(-1, start).squeeze(-1).sum((-1, -2))

@@ -271,6 +271,7 @@ from lfd_torch.segmentation.dwell import (
     dwell_log_prob,
     dwell_mask,
     dwell_posterior,
+    dwell_start,
     dwell_prior,
     posterior_summary,
 )
@@ -749,10 +750,9 @@ class _Run:
             self.dwell_mask = dwell_mask(lengths, self.T, self.D)
             self.dwell_prior = dwell_prior(self.dtype, self.device)
             self.pace_ratios = PACE_RATIOS if cfg.dwell_pace else (0.0,)
-            seen = dwell[..., self.dwell_mask]
-            # a neutral start (delta = 0: no dwell effect until the states say otherwise)
-            self.dwell_beta = torch.stack([seen.mean(), torch.zeros_like(seen.mean())]).expand(self.C, 2).clone()
-            self.dwell_noise = seen.var().clamp_min(1e-6).expand(self.C).clone()
+            beta, noise = dwell_start(dwell[..., self.dwell_mask])  # neutral: no dwell effect yet
+            self.dwell_beta = beta.expand(self.C, 2).clone()
+            self.dwell_noise = noise.expand(self.C).clone()
             self.dwell_ll = dwell_log_likelihood(dwell, self.dwell_mask, self.dwell_beta, self.dwell_noise)
         self._initialise()
 

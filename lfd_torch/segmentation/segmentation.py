@@ -179,12 +179,10 @@ points up to noise; any position density that gives them to one step loses them 
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import math
 import numbers
 import time
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -1454,17 +1452,11 @@ def segment(
     if block_emission:
         parts = [block_means(s, g, length) for s, g, (length, _, _) in zip(seqs_full, grid, grid_levels)]
         blocks = BlockMeans([m for m, _, _ in parts], [l for _, l, _ in parts], [c for _, _, c in parts], sigma_x)
-    # fewer than 2 grid points where a run can start (:func:`~.dwell.dwell_mask`): the dwell term starts from the
-    # finite fallback of :mod:`.dwell`, and torch's warning about the variance of < 2 values says nothing to a user
-    few_dwell = dwell is not None and sum(max(0, x.shape[0] - 2 * duration + 1) for x in xs) < 2
-    with warnings.catch_warnings() if few_dwell else contextlib.nullcontext():
-        if few_dwell:
-            warnings.filterwarnings("ignore", message=r"var\(\): degrees of freedom", category=UserWarning)
-        try:
-            result = sampler.run(xs, vs, generator, min_duration=duration, velocity_noise=sigma_v_t,
-                                 speed_floor=s_floor, dwell=dwell, blocks=blocks)
-        except torch.linalg.LinAlgError as exc:  # a degenerate field posterior (e.g. data without any spread)
-            raise SolverError(f"the BP-GM-HMM sampler failed on these demonstrations: {exc}") from exc
+    try:
+        result = sampler.run(xs, vs, generator, min_duration=duration, velocity_noise=sigma_v_t,
+                             speed_floor=s_floor, dwell=dwell, blocks=blocks)
+    except torch.linalg.LinAlgError as exc:  # a degenerate field posterior (e.g. data without any spread)
+        raise SolverError(f"the BP-GM-HMM sampler failed on these demonstrations: {exc}") from exc
     t1 = time.perf_counter()
     info_dwell = {k: v for k, v in result.hyperparameters.items() if k.startswith("dwell_")}
     # full-rate state sequences: the coarse runs, each switch placed by the change-point posterior
