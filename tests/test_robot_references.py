@@ -193,8 +193,8 @@ def test_impedance_reference_clamps_the_carried_lag() -> None:
 
 
 def test_impedance_torque_clamps_pd_then_adds_gravity() -> None:
-    """torque(): clip(kp (q_d - q) + kv (qd_d - qd), +-effort) + g, the gravity term outside the clamp;
-    reference: numpy."""
+    """torque(): clip(kp (q_d - q) + kv (qd_d - qd), +-effort) + g, the gravity term outside the clamp, q_d and qd_d
+    first clipped to the joint range and velocity limits as the plant's actuators clip them; reference: numpy."""
     imp = ImpedanceController()
     kp, kv, tmax = imp.stiffness.numpy(), imp.damping.numpy(), imp.effort_limits.numpy()
     rng = np.random.default_rng(2)
@@ -202,7 +202,10 @@ def test_impedance_torque_clamps_pd_then_adds_gravity() -> None:
     q_d, qd_d = q + rng.uniform(-0.2, 0.2, (3, 7)), rng.uniform(-1, 1, (3, 7))
     g = rng.uniform(-40, 40, (3, 7))
     got = imp.torque(*(torch.tensor(x) for x in (q, qd, q_d, qd_d)), gravity=torch.tensor(g)).numpy()
-    expect = np.clip(kp * (q_d - q) + kv * (qd_d - qd), -tmax, tmax) + g
+    joints = [j for j in BAXTER_LEFT_TABLE if j.kind == "revolute"]
+    lo, hi, vmax = (np.array([getattr(j, a) for j in joints]) for a in ("lower", "upper", "velocity"))
+    q_dc, qd_dc = np.clip(q_d, lo, hi), np.clip(qd_d, -vmax, vmax)
+    expect = np.clip(kp * (q_dc - q) + kv * (qd_dc - qd), -tmax, tmax) + g
     np.testing.assert_allclose(got, expect, atol=1e-10)
     assert (np.abs(got) > tmax).any()  # the compensation is not clamped
 

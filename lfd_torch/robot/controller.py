@@ -219,7 +219,9 @@ class DLSVelocityMap:
         qdot = dls(J, v, z)
         # speed limits: scale the whole qdot (and the task) so that the direction is kept
         scale = (vmax / qdot.abs().clamp_min(1e-12)).amin(-1, keepdim=True).clamp(max=1.0)
-        v, z, qdot = v * scale, z * scale, qdot * scale
+        # the clamp removes the rounding step past +-vmax that the product can leave on the joint that set the scale:
+        # flagged as a violation, it would fix that joint and re-solve the others (qdot jumping with q by 1e-12 rad)
+        v, z, qdot = v * scale, z * scale, torch.minimum(torch.maximum(qdot * scale, -vmax), vmax)
         free = torch.ones_like(q)
         fixed = torch.zeros_like(q)
         for _ in range(self.iterations):
@@ -253,16 +255,24 @@ class ImpedanceController:
         if effort_limits is None:
             effort_limits = [j.effort for j in BAXTER_LEFT_TABLE if j.kind == "revolute"]
         self.effort_limits = _vec7(effort_limits, "effort_limits")
+        joints = [j for j in BAXTER_LEFT_TABLE if j.kind == "revolute"]
+        # the plant's position and velocity actuators clip their controls to these ranges (ctrlrange)
+        self._q_range = torch.tensor([[j.lower for j in joints], [j.upper for j in joints]], dtype=torch.float64)
+        self._qd_limit = torch.tensor([j.velocity for j in joints], dtype=torch.float64)
         if isinstance(max_lag, bool) or not isinstance(max_lag, (int, float)) or not max_lag >= 0:
             raise InvalidArgumentError(f"max_lag must be a number >= 0, got {max_lag!r}")
         self.max_lag = float(max_lag)
 
     def torque(self, q, qd, q_d, qd_d, gravity=None) -> torch.Tensor:
-        """(B, 7) joint torque (N m): ``clamp(kp (q_d - q) + kv (qd_d - qd)) + gravity`` for (B, 7) inputs."""
+        """(B, 7) joint torque (N m): ``clamp(kp (q_d - q) + kv (qd_d - qd)) + gravity`` for (B, 7) inputs, with q_d
+        clipped to the joint range and qd_d to the velocity limits first, as the plant's actuators clip their controls."""
         q = check_joint_tensor(q, "q")
         qd, q_d, qd_d = (check_joint_tensor(x, n) for x, n in ((qd, "qd"), (q_d, "q_d"), (qd_d, "qd_d")))
         _same_shape(q, qd=qd, q_d=q_d, qd_d=qd_d)
         kp, kv, tmax = (t.to(q) for t in (self.stiffness, self.damping, self.effort_limits))
+        (lo, hi), vmax = self._q_range.to(q), self._qd_limit.to(q)
+        q_d = torch.minimum(torch.maximum(q_d, lo), hi)
+        qd_d = torch.minimum(torch.maximum(qd_d, -vmax), vmax)
         tau = torch.maximum(torch.minimum(kp * (q_d - q) + kv * (qd_d - qd), tmax), -tmax)
         if gravity is None:
             return tau

@@ -17,7 +17,7 @@ Physical model (stated here; plausible values, not identified from a real robot)
   limit, plus gravity compensation of every link (MuJoCo ``gravcomp="1"``, exact for this model):
   ``tau = clamp(kp (q_d - q) + kv (qdot_d - qdot)) + g(q)``, evaluated by MuJoCo every physics step (1 kHz). The
   compensation is not clamped: Baxter's shoulder carries a gravity-assist spring, and the stretched arm needs
-  about 65 N m at s1, more than its 50 N m rating.
+  up to 55 N m at s1 (54.3 N m at q = 0), more than its 50 N m rating.
 * Scene (torso frame, m): a table (box), a sugar can and a coffee cup (open cylinders: a bottom disc and
   ``n_wall`` box staves), the sugar as a non-colliding volume inside the can, the spoon (handle capsule + bowl
   sphere) on the gripper. Arm geoms collide with the scene, not with each other.

@@ -18,7 +18,8 @@ Labels (the engine's own test at the landing point, x = the tip when a jump land
 it lies inside A_m; a small jump must also land at least ``away`` m from the step's training positions.
 
 Success (:class:`SuccessCriteria`, checked per trial; the first failed check is the stored reason): the tip went
-more than ``sugar_depth`` m below the sugar surface inside the can and later left the can (above its rim or outside
+more than ``sugar_depth`` m inside the sugar (the least of its depth below the surface, its distance inside the can
+wall and its height above the bottom: :func:`sugar_depth`) and later left the can (above its rim or outside
 its wall); it then
 reached the region above the cup (within the cup radius, between the rim and ``cup_height`` m above it); no contact
 of spoon, hand or arm with the can walls, the cup walls or the table at any time of the trial, whatever caused it (a
