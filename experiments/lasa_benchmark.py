@@ -58,6 +58,7 @@ from lfd_torch.modulation import MODULATION_MODES, Modulation
 from lfd_torch.preprocess import subsample
 from lfd_torch.skills import SkillEngine, SkillLibrary
 from lfd_torch.store import atomic_write, finished_part, prepare_job, read_manifest, staged_results, write_table
+from lfd_torch.store.job import RESULTS_NAME
 from lfd_torch.utils import check_int, derive_seed
 from lfd_torch.viz import violin_grid
 from lfd_torch.store.config_checks import (
@@ -130,13 +131,13 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     job = prepare_job(cfg)
     out_dir, manifest = job.out_dir, job.manifest
     shapes = checked["shapes"]
-    done = finished_part(out_dir / "results.parquet", manifest) if cfg.resume else None
+    done = finished_part(out_dir / RESULTS_NAME, manifest) if cfg.resume else None
     if done is not None:  # a re-run sweep (same hydra.sweep.dir) skips its finished jobs
         log.info("%s already holds this job's rows (config %s); skipped", out_dir, manifest["config_hash"])
         summ = summary(done)
         written: list[Path] = []
         if cfg.get("publish"):  # publish is not in the config hash: publish the finished rows as they are
-            stored = read_manifest(out_dir / "results.parquet") or manifest
+            stored = read_manifest(out_dir / RESULTS_NAME) or manifest
             written = publish(done, summ, cfg, stored)
             log.info("published the stored rows of %s", out_dir)
         return {"table": done, "summary": summ, "written": written, "skipped": True}
@@ -197,7 +198,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     summ = summary(table)
     written = write_summary(summ, out_dir, "summary") + write_violins(table, out_dir / "violins.png")
     # the rows last: their presence marks the job as finished (resume)
-    written.append(write_table(table, out_dir / "results.parquet", manifest=manifest))
+    written.append(write_table(table, out_dir / RESULTS_NAME, manifest=manifest))
     if cfg.get("publish"):
         written += publish(table, summ, cfg, manifest)
     log.info("summary:\n%s", summ.to_string(index=False))

@@ -49,9 +49,10 @@ from lfd_torch.metrics import dtw_distance, swept_area
 from lfd_torch.modulation import MODULATION_MODES, Branch, Modulation
 from lfd_torch.preprocess.regularize import resample
 from lfd_torch.segmentation import FixedSegmenter, NoSegmenter
-from lfd_torch.skills import SkillEngine, SkillLibrary, random_pushes
+from lfd_torch.skills import Arrival, SkillEngine, SkillLibrary, SkillSettings, random_pushes
 from lfd_torch.skills.plot import plot_entropy, plot_rollout_panels
 from lfd_torch.store import atomic_write, prepare_job, staged_results, write_table
+from lfd_torch.store.job import RESULTS_NAME
 from lfd_torch.utils import check_int, derive_seed
 from lfd_torch.viz.stored import load_demos, save_config, save_demos
 from lfd_torch.store.config_checks import (
@@ -141,19 +142,26 @@ def recovery(engine: SkillEngine, out: Any) -> tuple[torch.Tensor, torch.Tensor]
 TRAININGS: tuple[str, ...] = ("one", "all")
 
 
-def learn(cfg: DictConfig, demos: Demos, segmenter: Any, seed_parts: tuple) -> tuple[SkillLibrary, float]:
+def learn(cfg: DictConfig, demos: Demos, segmenter: Any, seed_parts: tuple,
+          settings: SkillSettings | None = None) -> tuple[SkillLibrary, float]:
+    """The library of ``demos`` and its fit time (s); ``settings``: the checked ``cfg.skills`` (None: built here)."""
+    settings = instantiate(cfg.skills) if settings is None else settings
     g = torch.Generator().manual_seed(derive_seed(*seed_parts))
     t0 = time.perf_counter()
     seg = segmenter(demos, generator=g)
-    lib = SkillLibrary.learn(demos, seg, primitive=instantiate(cfg.ds), generator=g, **instantiate(cfg.skills).learn_kwargs)
+    lib = SkillLibrary.learn(demos, seg, primitive=instantiate(cfg.ds), generator=g, **settings.learn_kwargs)
     return lib, time.perf_counter() - t0
 
 
-def engines_of(cfg: DictConfig, lib: SkillLibrary) -> dict[str, SkillEngine]:
-    """One engine per mode of ``cfg.modes`` over ``lib``, with the run's modulation and arrival settings."""
-    arrival = instantiate(cfg.skills).arrival
+def modulations_of(cfg: DictConfig, modes: Any) -> dict[str, Modulation]:
+    """One :class:`Modulation` per mode of ``modes``, with the run's ``cfg.modulation`` settings."""
     mod_kw = {k: v for k, v in OmegaConf.to_container(cfg.modulation, resolve=True).items() if k not in ("_target_", "mode")}
-    return {mode: SkillEngine(lib, Modulation(mode=mode, **mod_kw), arrival) for mode in cfg.modes}
+    return {mode: Modulation(mode=mode, **mod_kw) for mode in modes}
+
+
+def engines_of(lib: SkillLibrary, modulations: dict[str, Modulation], arrival: Arrival) -> dict[str, SkillEngine]:
+    """One engine per mode over ``lib`` (:func:`modulations_of`), with the run's arrival settings."""
+    return {mode: SkillEngine(lib, modulation, arrival) for mode, modulation in modulations.items()}
 
 
 def task_starts(cfg: DictConfig, shape: str, training: str, engines: dict[str, SkillEngine],
@@ -176,14 +184,18 @@ def roll(cfg: DictConfig, shape: str, training: str, kind: str, engine: SkillEng
     return engine.rollout(x0, dt=cfg.dt, n_steps=int(round(cfg.budget_s / cfg.dt)), pushes=pushes)
 
 
-def run_task(cfg: DictConfig, shape: str, training: str, out_dir: Path) -> tuple[list[dict[str, Any]], dict]:
+def run_task(cfg: DictConfig, shape: str, training: str, out_dir: Path,
+             checked: dict[str, Any]) -> tuple[list[dict[str, Any]], dict]:
+    """The rows of one task and what its figures draw; ``checked``: :func:`check_config`'s values."""
+    settings = checked["settings"]
     demos_all = load_lasa(shape)
     train = demos_all[[int(cfg.train_demo)]] if training == "one" else demos_all
-    lib, fit_s = learn(cfg, train, instantiate(cfg.segmentation), (cfg.experiment, shape, training, cfg.seed))
+    lib, fit_s = learn(cfg, train, instantiate(cfg.segmentation), (cfg.experiment, shape, training, cfg.seed),
+                       settings)  # fmt: skip
     lib.save(out_dir / "libraries" / f"{shape}_{training}")
     log.info("%s/%s: %d steps, %d routes, learned in %.1f s, stability %s", shape, training, lib.n_steps,
              len(lib.routes), fit_s, lib.stability and lib.stability["passed"])  # fmt: skip
-    engines = engines_of(cfg, lib)
+    engines = engines_of(lib, checked["modulations"], settings.arrival)
     kinds = task_starts(cfg, shape, training, engines, demos_all)
     rows: list[dict[str, Any]] = []
     outs: dict[tuple[str, str], Any] = {}
@@ -240,10 +252,10 @@ def fig6_libraries(cfg: DictConfig, shape: str, train: Demos) -> dict[int, Skill
     return libs
 
 
-def fig6_panels(cfg: DictConfig, libs: dict[int, SkillLibrary], demos: Demos) -> list[tuple[str, SkillLibrary, Any]]:
-    """Fig. 6 panels: each library's engine (mode none) from the demonstrations' starts."""
+def fig6_panels(cfg: DictConfig, libs: dict[int, SkillLibrary], demos: Demos,
+                arrival: Arrival) -> list[tuple[str, SkillLibrary, Any]]:
+    """Fig. 6 panels: each library's engine (mode none, the run's ``arrival``) from the demonstrations' starts."""
     panels = []
-    arrival = instantiate(cfg.skills).arrival
     for k, lib_k in sorted(libs.items()):
         out = SkillEngine(lib_k, "none", arrival).rollout(demos.start_points, dt=cfg.dt,
                                                           n_steps=int(round(cfg.budget_s / cfg.dt)))  # fmt: skip
@@ -322,9 +334,10 @@ def replay(cfg: DictConfig, shape: str, libraries: Path) -> tuple[dict[str, dict
     tasks: dict[str, dict] = {}
     trainings = [str(t) for t in cfg.training]
     base = "one" if "one" in trainings else trainings[0]  # the training whose Figs 5-7 are drawn
+    arrival, modulations = instantiate(cfg.skills).arrival, modulations_of(cfg, cfg.modes)
     for training in trainings:
         lib = SkillLibrary.load(where / f"{shape}_{training}")
-        engines = engines_of(cfg, lib)
+        engines = engines_of(lib, modulations, arrival)
         kinds = task_starts(cfg, shape, training, engines, demos_all)
         outs = {}
         for kind, x0 in kinds.items():
@@ -337,7 +350,7 @@ def replay(cfg: DictConfig, shape: str, libraries: Path) -> tuple[dict[str, dict
                 outs[(kind, mode)] = roll(cfg, shape, training, kind, eng, x0[:rows])
         tasks[training] = {"library": lib, "demos": demos_all, "engines": engines, "outs": outs}
     fig6_libs = {k: SkillLibrary.load(where / f"{shape}_steps{k}") for k in FIG6_STEPS}
-    return tasks, fig6_panels(cfg, fig6_libs, demos_all)
+    return tasks, fig6_panels(cfg, fig6_libs, demos_all, arrival)
 
 
 def summary(table: pd.DataFrame) -> pd.DataFrame:
@@ -360,8 +373,10 @@ def summary(table: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def check_config(cfg: DictConfig) -> None:
-    """Check every setting before anything is fitted (InvalidArgumentError / UnknownNameError naming the key)."""
+def check_config(cfg: DictConfig) -> dict[str, Any]:
+    """Check every setting before anything is fitted (InvalidArgumentError / UnknownNameError naming the key);
+    returns the checked objects the run uses: ``modulations`` (mode -> :class:`Modulation`, :func:`modulations_of`)
+    and ``settings`` (:class:`~lfd_torch.skills.SkillSettings`)."""
     shapes = name_list(cfg, "shapes", LASA_NAMES)
     name_list(cfg, "training", TRAININGS)
     modes = name_list(cfg, "modes", MODULATION_MODES)
@@ -385,14 +400,11 @@ def check_config(cfg: DictConfig) -> None:
     if low > high:
         raise InvalidArgumentError(f"pushes.low must not exceed pushes.high, got {low} > {high}")
     check_entropy_quantile(cfg)
-    mod_kw = {k: v for k, v in OmegaConf.to_container(cfg.modulation, resolve=True).items() if k not in ("_target_", "mode")}
-    for mode in modes:
-        Modulation(mode=mode, **mod_kw)
-    instantiate(cfg.skills)
+    return {"modulations": modulations_of(cfg, modes), "settings": instantiate(cfg.skills)}
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
-    check_config(cfg)
+    checked = check_config(cfg)
     job = prepare_job(cfg)
     out_dir, manifest = job.out_dir, job.manifest
     rows: list[dict[str, Any]] = []
@@ -401,7 +413,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     for shape in tqdm(list(cfg.shapes), desc="lasa_tasks", unit="shape", disable=not cfg.get("progress", True)):
         tasks = {}
         for training in cfg.training:
-            part, task = run_task(cfg, str(shape), str(training), out_dir)
+            part, task = run_task(cfg, str(shape), str(training), out_dir, checked)
             rows.extend(part)
             tasks[str(training)] = task
         if cfg.figures or cfg.publish:
@@ -409,11 +421,12 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             assert base is not None
             fig6_libs = fig6_libraries(cfg, str(shape), base["train"])
             if cfg.figures:
-                written.extend(figures(cfg, str(shape), tasks, fig6_panels(cfg, fig6_libs, base["demos"]), fig_dir))
+                panels = fig6_panels(cfg, fig6_libs, base["demos"], checked["settings"].arrival)
+                written.extend(figures(cfg, str(shape), tasks, panels, fig_dir))
             if cfg.publish:
                 written.extend(store(cfg, str(shape), tasks, fig6_libs, Path(cfg.paths.libraries)))
     table = pd.DataFrame(rows)
-    written.append(write_table(table, out_dir / "results.parquet", manifest=manifest))
+    written.append(write_table(table, out_dir / RESULTS_NAME, manifest=manifest))
     summ = summary(table)
     md = summ.to_markdown(index=False, floatfmt=".3g")
     written.append(atomic_write(out_dir / "summary.md", lambda p: p.write_text(md + "\n")))

@@ -56,7 +56,9 @@ from lfd_torch.robot.trials import (
     wilson_interval,
 )
 from lfd_torch.segmentation import Segmentation
+from lfd_torch.skills import Arrival, SkillSettings
 from lfd_torch.store import atomic_write, prepare_job, staged_results, write_table
+from lfd_torch.store.job import RESULTS_NAME
 from lfd_torch.utils import derive_seed
 from lfd_torch.viz.stored import load_demos, load_state, save_config, save_demos, save_state
 from lfd_torch.store.config_checks import (
@@ -72,14 +74,16 @@ log = logging.getLogger(__name__)
 
 
 # ---------------------------------------------------------------------------------------------- learning
-def learn(cfg: DictConfig, robot: Any) -> ScoopingTask:
+def learn(cfg: DictConfig, robot: Any, settings: SkillSettings | None = None) -> ScoopingTask:
+    """The scooping task learned from the demonstration; ``settings``: the checked ``cfg.skills`` (None: built
+    here)."""
     if cfg.demo_path:
         demo = load_demonstration(cfg.demo_path, tool_offset=float(cfg.robot.tool_offset))
     else:
         demo = scooping_demonstration(int(cfg.demo_seed), scene=robot.plant.scene,
                                       tool_offset=float(cfg.robot.tool_offset))  # fmt: skip
     g = torch.Generator().manual_seed(derive_seed(cfg.experiment, "learn", cfg.seed))
-    settings = instantiate(cfg.skills)
+    settings = instantiate(cfg.skills) if settings is None else settings
     task = learn_scooping(demo, generator=g, preprocess=instantiate(cfg.preprocess),
                           segmenter=instantiate(cfg.segmentation), primitive=instantiate(cfg.ds), settings=settings)  # fmt: skip
     log.info("demonstration: %d samples, %.1f s; %d steps (stages %s); segmented in %.1f s, learned in %.1f s",
@@ -88,18 +92,26 @@ def learn(cfg: DictConfig, robot: Any) -> ScoopingTask:
     return task
 
 
-def controllers(cfg: DictConfig, task: ScoopingTask, robot: Any) -> dict[str, Any]:
-    settings = instantiate(cfg.skills)
+def modulations_of(cfg: DictConfig, modes: Any) -> dict[str, Modulation]:
+    """One :class:`Modulation` per mode of ``modes``, with the run's ``cfg.modulation`` settings."""
     mod_kw = OmegaConf.to_container(cfg.modulation, resolve=True)
-    return {mode: controller_for(task, robot, Modulation(mode=mode, **mod_kw), arrival=settings.arrival,
+    return {mode: Modulation(mode=mode, **mod_kw) for mode in modes}
+
+
+def controllers(cfg: DictConfig, task: ScoopingTask, robot: Any, modulations: dict[str, Modulation] | None = None,
+                arrival: Arrival | None = None) -> dict[str, Any]:
+    """One controller per mode; ``modulations`` (mode -> :class:`Modulation`) and ``arrival`` are
+    :func:`check_config`'s (None: built from ``cfg.modes``, ``cfg.modulation`` and ``cfg.skills``)."""
+    modulations = modulations_of(cfg, cfg.modes) if modulations is None else modulations
+    arrival = instantiate(cfg.skills).arrival if arrival is None else arrival
+    return {mode: controller_for(task, robot, modulation, arrival=arrival,
                                  options=OmegaConf.to_container(cfg.controller, resolve=True))
-            for mode in cfg.modes}  # fmt: skip
+            for mode, modulation in modulations.items()}  # fmt: skip
 
 
 def run_batches(cfg: DictConfig, task: ScoopingTask, ctl: Any, robot: Any, q0: torch.Tensor, plan: list | None,
-                bar: Any) -> tuple[list[dict], list[TrialBatch]]:
-    """Trials in batches of ``batch_size`` (rows carry the global trial index)."""
-    crit = SuccessCriteria(**OmegaConf.to_container(cfg.criteria, resolve=True))
+                bar: Any, crit: SuccessCriteria) -> tuple[list[dict], list[TrialBatch]]:
+    """Trials in batches of ``batch_size`` (rows carry the global trial index), judged by ``crit``."""
     rows, batches = [], []
     n = q0.shape[0]
     step = int(cfg.batch_size)
@@ -423,9 +435,11 @@ def store_config(cfg: DictConfig, timings: dict[str, float], n_steps: int, step_
 
 
 # ---------------------------------------------------------------------------------------------- run
-def check_config(cfg: DictConfig) -> None:
+def check_config(cfg: DictConfig) -> dict[str, Any]:
     """Check every setting before anything is built or fitted (InvalidArgumentError / UnknownNameError naming the
-    key)."""
+    key); returns the checked objects the run uses: ``modulations`` (mode -> :class:`Modulation`,
+    :func:`modulations_of`), ``settings`` (:class:`~lfd_torch.skills.SkillSettings`) and ``criteria``
+    (:class:`SuccessCriteria`)."""
     positive_int(cfg, "threads")
     modes = name_list(cfg, "modes", MODULATION_MODES)
     positive_int(cfg, "starts.n")
@@ -439,15 +453,14 @@ def check_config(cfg: DictConfig) -> None:
     nonnegative_float(cfg, "away")
     nonnegative_int(cfg, "n_figure_trials")
     check_entropy_quantile(cfg)
-    mod_kw = OmegaConf.to_container(cfg.modulation, resolve=True)
-    for mode in modes:
-        Modulation(mode=mode, **mod_kw)
-    instantiate(cfg.skills)
-    SuccessCriteria(**OmegaConf.to_container(cfg.criteria, resolve=True))
+    modulations = modulations_of(cfg, modes)
+    settings = instantiate(cfg.skills)
+    criteria = SuccessCriteria(**OmegaConf.to_container(cfg.criteria, resolve=True))
+    return {"modulations": modulations, "settings": settings, "criteria": criteria}
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
-    check_config(cfg)
+    checked = check_config(cfg)
     torch.set_num_threads(int(cfg.threads))
     job = prepare_job(cfg)
     out_dir, manifest = job.out_dir, job.manifest
@@ -456,8 +469,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     g = torch.Generator().manual_seed(derive_seed(cfg.experiment, "disturbances", cfg.seed))
     plan = plan_disturbances(int(cfg.n_disturbed), g, **OmegaConf.to_container(cfg.disturbances, resolve=True))
     robot = instantiate(cfg.robot, _convert_="all")
-    task = learn(cfg, robot)
-    ctls = controllers(cfg, task, robot)
+    task = learn(cfg, robot, checked["settings"])
+    ctls = controllers(cfg, task, robot, checked["modulations"], checked["settings"].arrival)
+    crit = checked["criteria"]
     q_starts = start_configurations(task, robot.arm, int(cfg.starts.n), radius=float(cfg.starts.radius),
                                     height=float(cfg.starts.height))  # fmt: skip
     q_dist = q_starts[torch.arange(len(plan)) % q_starts.shape[0]]
@@ -471,9 +485,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     with tqdm(total=total, desc="scooping", unit="tick", disable=not cfg.get("progress", True)) as bar:
         for mode, ctl in ctls.items():
             t0 = time.perf_counter()
-            r_start, b_start = run_batches(cfg, task, ctl, robot, q_starts, None, bar)
+            r_start, b_start = run_batches(cfg, task, ctl, robot, q_starts, None, bar, crit)
             t1 = time.perf_counter()
-            r_dist, b_dist = run_batches(cfg, task, ctl, robot, q_dist, plan, bar) if plan else ([], [])
+            r_dist, b_dist = run_batches(cfg, task, ctl, robot, q_dist, plan, bar, crit) if plan else ([], [])
             t2 = time.perf_counter()
             timings[f"start_{mode}_s"], timings[f"disturbed_{mode}_s"] = t1 - t0, t2 - t1
             start_batches[mode] = b_start[0]
@@ -487,7 +501,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                      len(r_start), sum(r["success"] for r in r_dist), len(r_dist), t1 - t0, t2 - t1)  # fmt: skip
     table = pd.DataFrame(rows)
     summ = summary(table)
-    written: list[Path] = [write_table(table, out_dir / "results.parquet", manifest=manifest)]
+    written: list[Path] = [write_table(table, out_dir / RESULTS_NAME, manifest=manifest)]
     md = markdown(table, cfg, task.n_steps, task.step_stage.tolist(), timings)
     written.append(atomic_write(out_dir / "summary.md", lambda p: p.write_text(md)))
     if cfg.publish:

@@ -46,8 +46,8 @@ def _spd(gen: torch.Generator, *batch: int, d: int = 2, dtype: torch.dtype = F64
 # ---------------------------------------------------------------------------------------------- 1. S_k override
 def test_velocity_covariance_override_is_validated_like_the_primitive_constructor() -> None:
     """Property (velocity_mixture docstring, StablePrimitive constructor): an override S_k with Inf or NaN is a
-    NonFiniteError, a non-symmetric or indefinite one an InvalidArgumentError, one of another dtype a
-    ShapeMismatchError, each naming velocity_covariances (an Inf entry used to drop its component silently, an
+    NonFiniteError, a non-symmetric or indefinite one or one of another dtype a ShapeMismatchError (the exact
+    types), each naming velocity_covariances (an Inf entry used to drop its component silently, an
     asymmetric S_k to be replaced by its symmetric part); the primitive's own S_k as override gives H2 unchanged."""
     prim = certified_primitive(2, 3, seed=41)
     x = prim.gmm.means + 0.5
@@ -60,10 +60,11 @@ def test_velocity_covariance_override_is_validated_like_the_primitive_constructo
     asym[1, 0, 1] += 0.5
     indefinite[0] = torch.diag(torch.tensor([1.0, -0.5], dtype=F64))
     for fn in (renyi_entropy, velocity_mixture):
-        for bad, error in ((inf, NonFiniteError), (nan, NonFiniteError), (asym, InvalidArgumentError),
-                           (indefinite, InvalidArgumentError), (S.float(), ShapeMismatchError)):  # fmt: skip
-            with pytest.raises(error, match="velocity_covariances"):
+        for bad, error in ((inf, NonFiniteError), (nan, NonFiniteError), (asym, ShapeMismatchError),
+                           (indefinite, ShapeMismatchError), (S.float(), ShapeMismatchError)):  # fmt: skip
+            with pytest.raises(error, match="velocity_covariances") as exc:
                 fn(prim, x, velocity_covariances=bad)
+            assert exc.type is error, (fn.__name__, exc.type)
 
 
 # ---------------------------------------------------------------------------------------------- 2. small scale
@@ -294,3 +295,4 @@ def test_preprocess_checks_trim_tolerances_are_finite_at_construction() -> None:
             Preprocess(**kw)
     p = Preprocess(trim_position_tol=0, trim_velocity_tol=np.float32(2.5))
     assert p.trim_position_tol == 0 and p.trim_velocity_tol == np.float32(2.5)
+    assert type(p.trim_position_tol) is int and type(p.trim_velocity_tol) is np.float32

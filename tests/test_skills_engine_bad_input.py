@@ -126,14 +126,15 @@ def test_velocity_checks_done_inside_and_densities(task) -> None:
     v_ref, dec, branch_ref = eng.step_batch(x, torch.zeros(4, dtype=torch.long), torch.zeros(4, dtype=torch.long))
     assert torch.equal(dec.step, step) and torch.equal(v, v_ref) and torch.equal(branch, branch_ref)
     own, other = eng.own_other(x, step)
-    cases = ((lambda: eng.velocity(x, step, no.double()), "done"),
-             (lambda: eng.velocity(x, step, no, no[:3]), "inside"),
-             (lambda: eng.velocity(x, step, no, None, (own, other * NAN)), "densities"),
-             (lambda: eng.velocity(x, step, no, None, (own, other[:2])), "densities"),
-             (lambda: eng.velocity(x, step, no, None, own), "densities"))  # fmt: skip
-    for call, name in cases:
-        with pytest.raises(InvalidArgumentError, match=name):
+    cases = ((lambda: eng.velocity(x, step, no.double()), ShapeMismatchError, "done"),
+             (lambda: eng.velocity(x, step, no, no[:3]), ShapeMismatchError, "inside"),
+             (lambda: eng.velocity(x, step, no, None, (own, other * NAN)), NonFiniteError, "densities"),
+             (lambda: eng.velocity(x, step, no, None, (own, other[:2])), ShapeMismatchError, "densities"),
+             (lambda: eng.velocity(x, step, no, None, own), InvalidArgumentError, "densities"))  # fmt: skip
+    for call, error, name in cases:
+        with pytest.raises(error, match=name) as exc:
             call()
+        assert exc.type is error, (name, exc.type)
 
 
 def test_progress_methods_check_their_states_and_progress(task) -> None:

@@ -119,10 +119,10 @@ def velocity_mixture(primitive: Any, x: Tensor, *, velocity_covariances: Tensor 
         :class:`VelocityMixture` with (..., K) log weights, (..., K, d) means and (K, d, d) covariances.
 
     Raises:
-        ShapeMismatchError: ``x`` or ``velocity_covariances`` of the wrong shape, dtype or device.
+        ShapeMismatchError: ``x`` or ``velocity_covariances`` of the wrong shape, dtype or device, or
+            ``velocity_covariances`` that is not symmetric positive definite.
         NonFiniteError: NaN or Inf in ``x`` or ``velocity_covariances``.
-        InvalidArgumentError: ``primitive`` is not a primitive, it has no velocity covariances and none are given, or
-            ``velocity_covariances`` is not symmetric positive definite.
+        InvalidArgumentError: ``primitive`` is not a primitive, or it has no velocity covariances and none are given.
     """
     if not all(isinstance(getattr(primitive, a, None), Tensor) for a in ("attractor", "A")) \
             or not hasattr(primitive, "gmm"):  # fmt: skip

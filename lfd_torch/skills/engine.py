@@ -322,17 +322,25 @@ class SkillEngine:
 
     def _check_step(self, step: Tensor, B: int, name: str = "step") -> Tensor:
         """``step`` (B,) integer tensor of steps in 0..M-1, as long on the engine's device (as :meth:`_check_x`)."""
-        if not isinstance(step, Tensor) or step.is_floating_point() or step.is_complex() or step.dtype == torch.bool:
-            raise ShapeMismatchError(f"{name} must be a ({B},) integer tensor, got "
-                                     f"{getattr(step, 'dtype', type(step).__name__)}")  # fmt: skip
-        if step.shape != (B,):
-            raise ShapeMismatchError(f"{name} must have shape ({B},), got {tuple(step.shape)}")
+        self._check_int_vector(step, B, name)
         M = self.library.n_steps
         bad = (step < 0) | (step >= M)
         if bool(bad.any()):
             raise InvalidIndexError(f"{name} entries must lie in 0..{M - 1} (the library's steps), got "
                                     f"{int(step[bad][0])} (row {int(torch.nonzero(bad)[0])})")  # fmt: skip
         return step.to(device=self._f["device"], dtype=torch.long)
+
+    @staticmethod
+    def _check_int_vector(t: Tensor, B: int | None, name: str) -> Tensor:
+        """``t`` if it is a (B,) integer tensor (of any length where B is None: a 1-D one); ShapeMismatchError naming
+        ``name`` otherwise (steps, routes, progress indices)."""
+        want = "B" if B is None else B
+        if not isinstance(t, Tensor) or t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
+            raise ShapeMismatchError(f"{name} must be a ({want},) integer tensor, got "
+                                     f"{getattr(t, 'dtype', type(t).__name__)}")  # fmt: skip
+        if t.ndim != 1 or (B is not None and t.shape[0] != B):
+            raise ShapeMismatchError(f"{name} must have shape ({want},), got {tuple(t.shape)}")
+        return t
 
     @staticmethod
     def _check_flags(flags: Tensor, B: int, name: str) -> Tensor:
@@ -350,13 +358,21 @@ class SkillEngine:
 
         if ld is None:
             return None
-        check_tensor(ld, "ld", ndim=2, finite=False, shape_hint=f"({B}, {self.library.n_steps})")
-        if ld.shape != (B, self.library.n_steps):
-            raise ShapeMismatchError(f"ld must have shape ({B}, {self.library.n_steps}) (log_density(x)), got "
-                                     f"{tuple(ld.shape)}")  # fmt: skip
-        if bool(torch.isnan(ld).any()):
-            raise NonFiniteError("ld contains NaN")
-        return ld.to(**self._f)
+        return self._check_log_densities(ld, "ld", (B, self.library.n_steps), " (log_density(x))")
+
+    def _check_log_densities(self, t: Tensor, name: str, shape: tuple[int, ...], what: str = "") -> Tensor:
+        """Precomputed log densities ``t`` of ``shape`` (``ld``, :meth:`velocity`'s ``densities``) in the engine's
+        dtype and device: -inf allowed (a state outside every subtask space), NaN not.
+
+        Raises:
+            ShapeMismatchError: not a float tensor of ``shape`` (the message adds ``what``). NonFiniteError: NaN.
+        """
+        check_tensor(t, name, ndim=len(shape), finite=False, shape_hint=str(shape))
+        if t.shape != shape:
+            raise ShapeMismatchError(f"{name} must have shape {shape}{what}, got {tuple(t.shape)}")
+        if bool(torch.isnan(t).any()):
+            raise NonFiniteError(f"{name} contains NaN")
+        return t.to(**self._f)
 
     def log_density(self, x: Tensor) -> Tensor:
         """(..., M) log p(x|A_m) of states x (..., d) (``Segmentation.log_density``, evaluated by
@@ -469,11 +485,10 @@ class SkillEngine:
 
     def active_step(self, route: Tensor, index: Tensor) -> Tensor:
         """(B,) active step routes[route][index] (the last step once done) of rows on a route (route >= 0)."""
-        if not isinstance(route, Tensor) or route.ndim != 1:
-            raise ShapeMismatchError(f"route must be a (B,) integer tensor, got {getattr(route, 'shape', route)!r}")
+        B = self._check_int_vector(route, None, "route").shape[0]
         if index is None:
-            raise ShapeMismatchError(f"index must be a ({route.shape[0]},) integer tensor, got None")
-        self._check_progress(route, index, route.shape[0])
+            raise ShapeMismatchError(f"index must be a ({B},) integer tensor, got None")
+        self._check_progress(route, index, B)
         if bool((route < 0).any()):
             raise InvalidIndexError(f"route entries must lie in 0..{len(self.routes) - 1} (a chosen route), got "
                                     f"{route.tolist()}")  # fmt: skip
@@ -502,12 +517,8 @@ class SkillEngine:
         route (its length: done, as :class:`Decision` returns it) and in 0..(longest route) for a row on none."""
         longest = max(len(r) for r in self.routes)
         for name, t in (("route", route), ("index", index)):
-            if t is None:
-                continue
-            if not isinstance(t, Tensor) or t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
-                raise ShapeMismatchError(f"{name} must be a ({B},) integer tensor, got {getattr(t, 'dtype', type(t).__name__)}")
-            if t.shape != (B,):
-                raise ShapeMismatchError(f"{name} must have shape ({B},), got {tuple(t.shape)}")
+            if t is not None:
+                self._check_int_vector(t, B, name)
         if route is not None and bool(((route < -1) | (route >= len(self.routes))).any()):
             raise InvalidIndexError(f"route entries must lie in -1..{len(self.routes) - 1}, got {route.tolist()}")
         if index is not None:
@@ -570,13 +581,8 @@ class SkillEngine:
             if not isinstance(densities, (tuple, list)) or len(densities) != 2:
                 raise InvalidArgumentError("densities must be a pair (log p(x|A_m), log p(x|A_m-)) of (B,) tensors, "
                                            f"got {type(densities).__name__}")  # fmt: skip
-            for name, t in zip(("densities[0]", "densities[1]"), densities):
-                check_tensor(t, name, ndim=1, finite=False, shape_hint=f"({B},)")  # -inf: outside every space
-                if t.shape != (B,):
-                    raise ShapeMismatchError(f"{name} must have shape ({B},), got {tuple(t.shape)}")
-                if bool(torch.isnan(t).any()):
-                    raise NonFiniteError(f"{name} contains NaN")
-            densities = tuple(t.to(**self._f) for t in densities)
+            densities = tuple(self._check_log_densities(t, name, (B,))
+                              for name, t in zip(("densities[0]", "densities[1]"), densities))  # fmt: skip
         if not isinstance(shaping, bool):
             raise InvalidArgumentError(f"shaping must be a bool, got {shaping!r}")
         return self._velocity(x, step, done, inside, densities, shaping)

@@ -45,6 +45,7 @@ from lfd_torch.modulation import reference_entropy
 from lfd_torch.segmentation import Segmentation
 from lfd_torch.store import atomic_save
 from lfd_torch.utils import (
+    FLOAT_DTYPES,
     check_choice,
     check_float,
     check_int,
@@ -115,15 +116,43 @@ def _is_attractor(a: Tensor, g: Tensor) -> bool:
     return a.shape == g.shape and torch.allclose(a, g.to(a), rtol=rtol, atol=1e-9)
 
 
-def _check_step_primitive(prim: StablePrimitive, g: Tensor, m: int, what: str) -> StablePrimitive:
-    """``prim`` if it has g's dtype and device and the attractor g = g_m; ShapeMismatchError naming ``what``."""
-    if prim.dtype != g.dtype or prim.device != g.device:
-        raise ShapeMismatchError(f"{what} is {prim.dtype} on {prim.device}, the demonstrations {g.dtype} on {g.device}")
+def _check_step_primitive(prim: StablePrimitive, g: Tensor, m: int, what: str, *, where: str = "the demonstrations",
+                          same_dtype: bool = True) -> StablePrimitive:
+    """``prim`` if it has the dimension of g and the attractor g = g_m (and, with ``same_dtype``, g's dtype and
+    device); ShapeMismatchError naming ``what`` and where g comes from (``where``) otherwise."""
+    if same_dtype and (prim.dtype != g.dtype or prim.device != g.device):
+        raise ShapeMismatchError(f"{what} is {prim.dtype} on {prim.device}, {where} {g.dtype} on {g.device}")
     if prim.dim != g.shape[0]:
-        raise ShapeMismatchError(f"{what} has dimension {prim.dim}, the demonstrations {g.shape[0]}")
+        raise ShapeMismatchError(f"{what} has dimension {prim.dim}, {where} {g.shape[0]}")
     if not _is_attractor(prim.attractor, g):
         raise ShapeMismatchError(f"{what}: its attractor {prim.attractor.tolist()} is not g_{m} = {g.tolist()}")
     return prim
+
+
+def _check_skill(m: int, s: Skill, seg: Segmentation) -> None:
+    """Skill m of a library on ``seg``: a StablePrimitive with the attractor g_m of the segmentation
+    (:func:`_check_step_primitive`), and the values :func:`_check_skill_values` accepts.
+
+    The error is tagged with the library file that holds the faulty part (``_library_file``: ``step_<m>.pt`` for
+    the primitive, ``skills.pt`` for the values), so that :meth:`SkillLibrary.load` names it.
+
+    Raises:
+        InvalidArgumentError (ShapeMismatchError, NonFiniteError): naming the skill and the value.
+    """
+    try:
+        if not isinstance(s.primitive, StablePrimitive):
+            raise InvalidArgumentError(f"skill {m}: primitive must be a StablePrimitive, got "
+                                       f"{type(s.primitive).__name__}")  # fmt: skip
+        _check_step_primitive(s.primitive, seg.attractors[m], m, f"skill {m}: the primitive",
+                              where="the segmentation", same_dtype=False)  # fmt: skip
+    except LfdError as exc:
+        exc._library_file = f"step_{m}.pt"  # type: ignore[attr-defined]
+        raise
+    try:
+        _check_skill_values(m, s.h2_ref, s.train_positions, s.speed, s.duration, seg.dim)
+    except LfdError as exc:
+        exc._library_file = "skills.pt"  # type: ignore[attr-defined]
+        raise
 
 
 def _check_skill_values(m: int, h2_ref: Any, train_positions: Any, speed: Any, duration: Any, dim: int) -> None:
@@ -196,16 +225,7 @@ class SkillLibrary:
         if len(self.skills) != M or any(s.step != m for m, s in enumerate(self.skills)):
             raise ShapeMismatchError(f"a library needs one skill per step in step order (0..{M - 1})")
         for m, s in enumerate(self.skills):
-            if not isinstance(s.primitive, StablePrimitive):
-                raise InvalidArgumentError(f"skill {m}: primitive must be a StablePrimitive, got "
-                                           f"{type(s.primitive).__name__}")  # fmt: skip
-            if s.primitive.dim != seg.dim:
-                raise ShapeMismatchError(f"skill {m}: the primitive has dimension {s.primitive.dim}, the segmentation "
-                                         f"{seg.dim}")  # fmt: skip
-            if not _is_attractor(s.attractor, seg.attractors[m]):
-                raise ShapeMismatchError(f"skill {m}: the primitive's attractor {s.attractor.tolist()} is not g_{m} = "
-                                         f"{seg.attractors[m].tolist()} of the segmentation")  # fmt: skip
-            _check_skill_values(m, s.h2_ref, s.train_positions, s.speed, s.duration, seg.dim)
+            _check_skill(m, s, seg)
         check_float(self.entropy_quantile, "entropy_quantile", low=0.0, high=1.0, allow_none=True)
         check_float(self.span, "span", low=0.0, low_open=True)
         if self.stability is not None and not isinstance(self.stability, Mapping):
@@ -357,9 +377,8 @@ class SkillLibrary:
         if not isinstance(primitive, StablePrimitive):
             raise InvalidArgumentError(f"primitive must be a StablePrimitive, got {type(primitive).__name__}")
         old = self.skills[m]
-        prim = primitive.to(dtype=self.dtype, device=self.device)
-        if prim.dim != self.dim or not _is_attractor(prim.attractor, old.attractor):
-            raise ShapeMismatchError(f"the primitive's attractor {prim.attractor.tolist()} is not g_{m}")
+        prim = _check_step_primitive(primitive.to(dtype=self.dtype, device=self.device), old.attractor, m,
+                                     "the primitive", where="the library", same_dtype=False)  # fmt: skip
         h2 = reference_entropy(prim, old.train_positions, self.entropy_quantile)
         skills = list(self.skills)
         skills[m] = Skill(m, prim, h2.detach(), old.train_positions, old.speed, old.duration)
@@ -501,26 +520,23 @@ class SkillLibrary:
             if not isinstance(xs, (list, tuple)) or len(xs) != n_steps:
                 got = f"{len(xs)} of them" if isinstance(xs, (list, tuple)) else f"a {type(xs).__name__}"
                 raise ShapeMismatchError(f"train_positions must be a list of {n_steps} tensors, got {got}")
-            for m in range(n_steps):
-                _check_skill_values(m, h2[m], xs[m], speed[m], duration[m], seg.dim)
         except LfdError as exc:
             raise StoreError(f"library file {extra_path}: {exc}") from exc
         skills = []
         for m in range(n_steps):
-            path = root / f"step_{m}.pt"
-            prim = load_primitive(path, dtype=dtype, device=device)
-            if prim.dim != seg.dim or not _is_attractor(prim.attractor, seg.attractors[m]):
-                raise StoreError(f"library file {path}: its attractor {prim.attractor.tolist()} is not g_{m} = "
-                                 f"{seg.attractors[m].tolist()} of the segmentation (a file of another step or "
-                                 "library)")  # fmt: skip
+            prim = load_primitive(root / f"step_{m}.pt", dtype=dtype, device=device)
             f = {"dtype": prim.dtype, "device": prim.device}
-            skills.append(Skill(m, prim, h2[m].to(**f), xs[m].to(**f), float(speed[m]), float(duration[m])))
+            x_m = xs[m].to(**f) if isinstance(xs[m], Tensor) and xs[m].dtype in FLOAT_DTYPES else xs[m]  # else refused
+            skills.append(Skill(m, prim, h2[m].to(**f), x_m, float(speed[m]), float(duration[m])))
         if dtype is not None or device is not None:
             seg = _segmentation_to(seg, skills[0].primitive.dtype, skills[0].primitive.device)
-        try:
+        try:  # the constructor checks every skill against the segmentation (_check_skill names the faulty file)
             return cls(seg, tuple(skills), quantile, span, manifest.get("stability"),
                        dict(manifest.get("info") or {}))  # fmt: skip
         except (KeyError, TypeError, ValueError, LfdError) as exc:
+            part = getattr(exc, "_library_file", None)
+            if part is not None:
+                raise StoreError(f"library file {root / part}: {exc}") from exc
             raise StoreError(f"{man_path}: inconsistent library ({exc})") from exc
 
 

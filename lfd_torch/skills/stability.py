@@ -20,7 +20,6 @@ and stores the report in the manifest.
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -167,11 +166,13 @@ def check_stability(
     kw = {k: v for k, v in (("lambda_limit", lambda_limit), ("radial_floor", radial_floor)) if v is not None}
     gen = torch.Generator(device="cpu").manual_seed(int(seed))
     samples = [stability_samples(library, m, generator=gen, **sample_kwargs) for m in range(library.n_steps)]
-    for m, (x, _) in enumerate(samples):  # dV/dt < 0 is checked away from g_m only: at least one such state
-        if not bool((torch.linalg.vector_norm(x - library.skills[m].attractor, dim=-1) > 0).any()):
-            size = inspect.signature(stability_samples).parameters
-            got = ", ".join(f"{k} = {sample_kwargs.get(k, size[k].default)!r}"
-                            for k in ("n_box", "n_near", "near_radius", "n_far"))  # fmt: skip
+    # dV/dt < 0 is checked away from g_m only: at least one such state per step
+    away = [torch.linalg.vector_norm(x - library.skills[m].attractor, dim=-1) > 0 for m, (x, _) in enumerate(samples)]
+    for m, ((_, region), valid) in enumerate(zip(samples, away)):
+        if not bool(valid.any()):
+            n_box, n_near, n_far = torch.bincount(region, minlength=3).tolist()
+            radius = repr(sample_kwargs["near_radius"]) if "near_radius" in sample_kwargs else "default"
+            got = f"n_box = {n_box}, n_near = {n_near}, near_radius = {radius}, n_far = {n_far}"
             raise InvalidArgumentError(f"no stability sample of step {m} lies away from its attractor ({got}): give "
                                        "n_box or n_far >= 1, or n_near >= 1 with near_radius > 0")  # fmt: skip
     margins: dict[str, list[float]] = {}
@@ -181,7 +182,7 @@ def check_stability(
     for mode in modes:
         engine = SkillEngine(library, Modulation(mode=mode, **kw), arrival)
         margins[mode] = []
-        for m, (x, region) in enumerate(samples):
+        for m, ((x, region), valid) in enumerate(zip(samples, away)):
             skill = library.skills[m]
             step = torch.full((x.shape[0],), m, dtype=torch.long, device=x.device)
             u, _ = engine.velocity(x, step, torch.zeros_like(step, dtype=torch.bool))
@@ -190,7 +191,6 @@ def check_stability(
             dvdt = 2 * (Pe * u).sum(-1)
             denom = 2 * torch.linalg.vector_norm(Pe, dim=-1) * torch.linalg.vector_norm(u, dim=-1)
             cos = torch.where(denom > 0, dvdt / denom.clamp_min(torch.finfo(x.dtype).tiny), torch.zeros_like(dvdt))
-            valid = torch.linalg.vector_norm(e, dim=-1) > 0
             cos = torch.where(valid, cos, torch.full_like(cos, -1.0))
             i = int(cos.argmax())
             margins[mode].append(float(cos[i]))

@@ -14,7 +14,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from lfd_torch.errors import InvalidArgumentError, InvalidDemoError, InvalidGMMError, UnknownNameError
-from lfd_torch.utils import check_float, check_int
+from lfd_torch.utils import check_choice, check_float, check_int
 
 __all__ = [
     "get",
@@ -82,8 +82,7 @@ def name_list(cfg: DictConfig, key: str, valid: Iterable[str], *, allow_all: boo
     if not names:
         raise InvalidArgumentError(f"{key} must name at least one of {', '.join(valid)}; got an empty list")
     for name in names:
-        if not isinstance(name, str) or name not in valid:
-            raise UnknownNameError(key, str(name), valid)
+        check_choice(name, key, valid)
     repeated = sorted({n for n in names if names.count(n) > 1})
     if repeated:
         raise InvalidArgumentError(f"{key} names {', '.join(repeated)} more than once")

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from lfd_torch.errors import InvalidArgumentError, StoreError
-from lfd_torch.store.manifest import run_manifest
+from lfd_torch.store.manifest import run_manifest, same_run
 from lfd_torch.store.table import read_manifest
 
 __all__ = ["JobContext", "prepare_job", "RESULTS_NAME"]
@@ -50,7 +50,7 @@ def _set_aside_foreign_results(out_dir: Path, manifest: dict[str, Any]) -> Path 
         old = read_manifest(path)
     except StoreError:  # damaged: not this job's rows either
         old = None
-    if old is not None and all(old.get(k) == manifest[k] for k in ("config_hash", "seed")):
+    if same_run(old, manifest):
         return None
     stale = path.with_name(f"{path.name}.{time.time_ns()}.stale")
     try:

@@ -30,7 +30,8 @@ from omegaconf.errors import OmegaConfBaseException
 
 from lfd_torch.errors import StoreError
 
-__all__ = ["config_hash", "canonical_json", "git_sha", "run_manifest", "MANIFEST_FIELDS", "DEFAULT_HASH_EXCLUDE"]
+__all__ = ["config_hash", "canonical_json", "git_sha", "run_manifest", "same_run", "MANIFEST_FIELDS",
+           "DEFAULT_HASH_EXCLUDE"]
 
 #: Top-level configuration keys that :func:`config_hash` leaves out unless told otherwise.
 # Top-level keys that say where results go or which seed runs, not what is computed.
@@ -240,3 +241,11 @@ def run_manifest(cfg: Mapping[str, Any] | DictConfig | None, seed: int) -> dict[
         "torch_version": torch.__version__,
         "timestamp": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
+
+
+def same_run(found: Mapping[str, Any] | None, manifest: Mapping[str, Any],
+             keys: Collection[str] = ("config_hash", "seed")) -> bool:
+    """Whether rows whose run manifest is ``found`` (None: it could not be read) belong to the run that ``manifest``
+    describes: the same value at every key of ``keys`` (by default its configuration and seed; add ``git_sha`` to
+    require the same code too). A key absent from both counts as the same (None == None)."""
+    return found is not None and all(found.get(k) == manifest.get(k) for k in keys)

@@ -40,7 +40,7 @@ import pyarrow.parquet as pq
 from lfd_torch.errors import StoreError
 from lfd_torch.utils import check_path
 from lfd_torch.store.atomic import atomic_path, is_temp_file
-from lfd_torch.store.manifest import config_hash
+from lfd_torch.store.manifest import config_hash, same_run
 from lfd_torch.store.table import (
     KEY_COLUMNS,
     REQUIRED_COLUMNS,
@@ -177,8 +177,9 @@ def _load_part(path: Path, job: Path | None, configs: dict[Path, Any]) -> tuple[
             manifest = _manifest_from_metadata(metadata, path) if expected is not None else None
             if manifest is not None:
                 want_hash, want_seed = expected
-                got_hash, got_seed = manifest.get("config_hash"), manifest.get("seed")
-                if got_hash != want_hash or (want_seed is not None and got_seed != want_seed):
+                keys = ("config_hash",) if want_seed is None else ("config_hash", "seed")  # None: no integer seed
+                if not same_run(manifest, {"config_hash": want_hash, "seed": want_seed}, keys):
+                    got_hash, got_seed = manifest.get("config_hash"), manifest.get("seed")
                     return None, (f"its rows come from another configuration (config_hash {got_hash!r}, seed "
                                   f"{got_seed!r}) than its job's {job / '.hydra' / 'config.yaml'} (config_hash "
                                   f"{want_hash!r}, seed {want_seed!r}): left there by an earlier sweep into the same "
@@ -190,8 +191,8 @@ def _load_part(path: Path, job: Path | None, configs: dict[Path, Any]) -> tuple[
     return frame, ""
 
 
-def _read_part(path: Path, job: Path | None = None, configs: dict[Path, Any] | None = None) -> pd.DataFrame | None:
-    frame, problem = _load_part(path, job, {} if configs is None else configs)
+def _read_part(path: Path, job: Path | None, configs: dict[Path, Any]) -> pd.DataFrame | None:
+    frame, problem = _load_part(path, job, configs)
     if frame is None:
         warnings.warn(f"skipping sweep part {path}: {problem}", PartialSweepWarning, stacklevel=3)
     return frame
@@ -327,7 +328,7 @@ def finished_part(path: str | os.PathLike[str], manifest: Mapping[str, Any]) -> 
         frame = read_table(p)
     except StoreError:
         return None
-    if old is None or any(old.get(k) != manifest.get(k) for k in ("config_hash", "seed", "git_sha")):
+    if not same_run(old, manifest, ("config_hash", "seed", "git_sha")):
         return None
     return frame
 
