@@ -24,10 +24,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
-from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
+from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError
 from lfd_torch.gmm.gaussian import NotPositiveDefiniteError, gaussian_log_normalizer
 from lfd_torch.utils import check_float, check_generator, check_int, check_tensor, solver_errors
 
@@ -58,12 +59,16 @@ class NIWPrior:
         dof: (...,) degrees of freedom nu0 of the inverse Wishart (> d - 1).
         scale: (..., d, d) scale matrix Psi0 (symmetric positive definite); E[Sigma] = Psi0 / (nu0 - d - 1).
 
-    Construction checks the types and shapes of the fields and that ``kappa > 0`` and ``dof > d - 1`` (finite);
-    the positive definiteness of ``scale`` is checked where it is factorised (:func:`sample_niw`).
+    Construction checks the types, dtypes (one for all fields) and shapes of the fields (d >= 1, batch shapes that
+    broadcast), that ``mean`` and ``scale`` are finite, ``kappa > 0``, ``dof > d - 1`` (finite) and that ``scale``
+    is symmetric positive definite (a Cholesky factorisation in float64).
 
     Raises:
-        ShapeMismatchError: a field that is not a floating-point tensor, or ``scale`` not (..., d, d).
-        InvalidArgumentError: ``kappa <= 0`` or ``dof <= d - 1`` (or NaN / Inf), naming the field.
+        ShapeMismatchError: a field that is not a floating-point tensor, ``scale`` not (..., d, d), d = 0, mixed
+            dtypes or devices, or batch shapes that do not broadcast.
+        NonFiniteError: NaN or Inf in ``mean`` or ``scale``.
+        InvalidArgumentError: ``kappa <= 0``, ``dof <= d - 1`` (or NaN / Inf), or a ``scale`` that is not
+            symmetric positive definite, naming the field.
     """
 
     mean: Tensor
@@ -80,15 +85,43 @@ class NIWPrior:
         if self.mean.ndim < 1 or self.scale.ndim < 2 or self.scale.shape[-2:] != (self.dim, self.dim):
             raise ShapeMismatchError(f"NIWPrior.mean must be (..., d) and NIWPrior.scale (..., d, d), got "
                                      f"{tuple(self.mean.shape)} and {tuple(self.scale.shape)}")  # fmt: skip
+        if self.dim == 0:
+            raise ShapeMismatchError(f"NIWPrior.mean must be (..., d) with d >= 1, got {tuple(self.mean.shape)}")
+        dtypes = {name: getattr(self, name).dtype for name in ("mean", "kappa", "dof", "scale")}
+        if len(set(dtypes.values())) > 1 or len({getattr(self, n).device for n in dtypes}) > 1:
+            raise ShapeMismatchError(f"NIWPrior fields must share one dtype and device, got "
+                                     f"{ {n: str(t) for n, t in dtypes.items()} }")  # fmt: skip
+        try:  # numpy's rule (torch.broadcast_shapes imports sympy on its first call)
+            np.broadcast_shapes(self.mean.shape[:-1], self.kappa.shape, self.dof.shape, self.scale.shape[:-2])
+        except ValueError as exc:
+            raise ShapeMismatchError(f"NIWPrior batch shapes do not broadcast: mean {tuple(self.mean.shape)}, kappa "
+                                     f"{tuple(self.kappa.shape)}, dof {tuple(self.dof.shape)}, scale "
+                                     f"{tuple(self.scale.shape)}") from exc  # fmt: skip
+        for name in ("mean", "scale"):
+            if not bool(torch.isfinite(_distinct(getattr(self, name))).all()):
+                raise NonFiniteError(f"NIWPrior.{name} contains NaN or Inf")
         if not bool((self.kappa > 0).all() & torch.isfinite(self.kappa).all()):
             raise InvalidArgumentError(f"NIWPrior.kappa must be finite and > 0, got {_few(self.kappa)}")
         if not bool((self.dof > self.dim - 1).all() & torch.isfinite(self.dof).all()):
             raise InvalidArgumentError(f"NIWPrior.dof must be finite and > d - 1 = {self.dim - 1}, got "
                                        f"{_few(self.dof)}")  # fmt: skip
+        scale = _distinct(self.scale).to(torch.float64)
+        asym = (scale - scale.transpose(-1, -2)).abs().amax((-2, -1), keepdim=False) if scale.numel() else scale
+        tol = 1e-6 * scale.abs().amax((-2, -1)).clamp_min(torch.finfo(self.scale.dtype).tiny) if scale.numel() else 0
+        _, info = torch.linalg.cholesky_ex(scale)
+        if scale.numel() and (bool((info != 0).any()) or bool((asym > tol).any())):
+            raise InvalidArgumentError("NIWPrior.scale must be symmetric positive definite (its Cholesky "
+                                       "factorisation in float64 fails, or it is not symmetric)")
 
     @property
     def dim(self) -> int:
         return self.mean.shape[-1]
+
+
+def _distinct(t: Tensor) -> Tensor:
+    """``t`` without the batch dimensions it was expanded along (stride 0): the same distinct values, checked once."""
+    index = tuple(slice(0, 1) if stride == 0 and size > 1 else slice(None) for stride, size in zip(t.stride(), t.shape))
+    return t[index]
 
 
 def _few(t: Tensor) -> str:
@@ -115,7 +148,9 @@ def niw_prior_from_data(
 
     The prior mean is the data mean; the prior expected covariance is ``covariance_scale`` times the diagonal of
     the data covariance (a state covers a region about sqrt(covariance_scale) of the data's spread per axis);
-    ``dof = d + 1 + extra_dof`` so that the expected covariance exists and the prior stays weak.
+    ``dof = d + 1 + extra_dof`` so that the expected covariance exists and the prior stays weak. Every axis'
+    variance is floored at 1e-6 of the largest one and at (eps max(|x|, 1))^2, the spread rounding leaves: constant
+    data (zero variance) still give a proper prior with a positive definite scale.
 
     Args:
         x: (N, d) samples (all sequences stacked), finite.
@@ -140,7 +175,12 @@ def niw_prior_from_data(
                         ("extra_dof", extra_dof)):
         check_float(value, name, low=0.0, low_open=True)
     var = x.var(dim=0, unbiased=True)
-    floor = var.max().clamp_min(torch.finfo(x.dtype).tiny) * 1e-6  # a flat axis still gets a proper prior
+    # a flat axis still gets a proper prior: 1e-6 of the largest variance, and at least the variance that rounding
+    # the data's magnitude leaves, (eps max(|x|, 1))^2 (a normal number), so that constant data give a positive
+    # definite scale rather than a subnormal or zero one
+    info = torch.finfo(x.dtype)
+    resolution = (info.eps * x.abs().max().clamp_min(1.0)) ** 2
+    floor = torch.maximum(var.max() * 1e-6, resolution)
     var = torch.maximum(var, floor)
     dof = d + 1.0 + extra_dof
     scale = torch.diag(var * covariance_scale * (dof - d - 1.0))
@@ -265,7 +305,27 @@ def niw_log_marginal_likelihood(prior: NIWPrior, counts: Tensor, sums: Tensor, o
 
     Returns:
         (..., K) log marginal likelihoods; exactly 0 for empty states.
+
+    Raises:
+        InvalidArgumentError: ``prior`` is not an NIWPrior, or ``counts`` holds a negative or NaN count.
+        ShapeMismatchError: ``sums`` not (..., K, d) or ``outer`` not (..., K, d, d) for counts (..., K).
     """
+    if not isinstance(prior, NIWPrior):
+        raise InvalidArgumentError(f"prior must be an NIWPrior, got {type(prior).__name__}")
+    if not isinstance(counts, Tensor) or not isinstance(sums, Tensor) or not isinstance(outer, Tensor):
+        raise ShapeMismatchError("counts, sums and outer must be tensors")
+    d = prior.dim
+    if sums.shape != (*counts.shape, d) or outer.shape != (*counts.shape, d, d):
+        raise ShapeMismatchError(f"sums must be (..., K, d) and outer (..., K, d, d) for counts (..., K) = "
+                                 f"{tuple(counts.shape)} and d = {d}, got sums {tuple(sums.shape)} and outer "
+                                 f"{tuple(outer.shape)}")  # fmt: skip
+    if not bool((counts >= 0).all()):
+        raise InvalidArgumentError(f"counts must be non-negative sample counts, got {_few(counts[~(counts >= 0)])}")
+    return _niw_log_marginal_likelihood_unchecked(prior, counts, sums, outer)
+
+
+def _niw_log_marginal_likelihood_unchecked(prior: NIWPrior, counts: Tensor, sums: Tensor, outer: Tensor) -> Tensor:
+    """:func:`niw_log_marginal_likelihood` without its argument checks."""
     post = _niw_posterior_unchecked(prior, counts, sums, outer)
     out = niw_log_marginal_normalizer(prior, counts) - 0.5 * post.dof * _logdet(post.scale)
     return torch.where(counts > 0, out, torch.zeros_like(out))

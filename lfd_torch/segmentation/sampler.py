@@ -285,7 +285,7 @@ from lfd_torch.segmentation.blocks import (
     state_slots,
 )
 from lfd_torch.segmentation.features import ibp_log_prior, shared_log_odds, unique_feature_rate
-from lfd_torch.segmentation.states import ffbs, forward_log_likelihood, used_states, viterbi
+from lfd_torch.segmentation.states import _ffbs, _forward_log_likelihood, used_states, viterbi
 from lfd_torch.segmentation.transitions import (
     dirichlet_log_density_rows,
     dirichlet_multinomial_log_prob,
@@ -1181,7 +1181,7 @@ class _Run:
         D = self.D
         le = self._expand(log_emission, features, lengths, dwell_ll)
         init, P = expand_min_duration(initial_distribution(features, self.dtype), transition_matrix(weights, features), D)
-        ll = forward_log_likelihood(le, init, P, lengths)
+        ll = _forward_log_likelihood(le, init, P, lengths)
         return torch.where(features.any(-1), ll, torch.full_like(ll, _NEG_INF))
 
     def _expand(self, log_emission: Tensor, features: Tensor, lengths: Tensor, dwell_ll: Tensor | None,
@@ -1536,7 +1536,7 @@ class _Run:
         le = self._expand(self.loge.reshape(C * N, self.T, K), f, lengths, self._flat_dwell())
         init, P = expand_min_duration(initial_distribution(f, self.dtype), transition_matrix(self.eta.reshape(C * N, K, K), f), D)
         lengths = self.lengths.repeat(C)
-        es = ffbs(le, init, P, lengths, self.gen).reshape(C, N, self.T)
+        es = _ffbs(le, init, P, lengths, self.gen).reshape(C, N, self.T)
         self.s, self.phase = es // D, es % D
 
     def _sample_parameters(self) -> None:

@@ -127,6 +127,13 @@ def sample_transition_weights_posterior(
     return torch.where(owned, pi * total.unsqueeze(-1), g)
 
 
+def _floor(dtype: torch.dtype) -> float:
+    """Smallest value a Gamma argument or probability is clamped to before lgamma / log: 1e-300, or the smallest
+    normal number of ``dtype`` where that is larger (1e-300 is 0 in float32, and lgamma(0) = inf then turns the
+    masked rows of unowned features into inf * 0 = NaN)."""
+    return max(1e-300, float(torch.finfo(dtype).tiny))
+
+
 def dirichlet_log_density_rows(pi: Tensor, features: Tensor, alpha: float, kappa: float) -> Tensor:
     """Sum over owned rows of log Dir(pi_j | alpha + kappa delta_j) restricted to owned features.
 
@@ -141,8 +148,8 @@ def dirichlet_log_density_rows(pi: Tensor, features: Tensor, alpha: float, kappa
     f = features.to(pi.dtype)
     block = f.unsqueeze(-1) * f.unsqueeze(-2)
     a = prior_shape(K, alpha, kappa, dtype=pi.dtype, device=pi.device) * block
-    log_pi = torch.log(torch.where(block > 0, pi, torch.ones_like(pi)).clamp_min(1e-300))
-    row = torch.lgamma(a.sum(-1).clamp_min(1e-300)) - torch.where(block > 0, torch.lgamma(a.clamp_min(1e-300)), torch.zeros_like(a)).sum(-1)
+    log_pi = torch.log(torch.where(block > 0, pi, torch.ones_like(pi)).clamp_min(_floor(pi.dtype)))
+    row = torch.lgamma(a.sum(-1).clamp_min(_floor(pi.dtype))) - torch.where(block > 0, torch.lgamma(a.clamp_min(_floor(pi.dtype))), torch.zeros_like(a)).sum(-1)
     row = row + ((a - 1.0) * log_pi * block).sum(-1)
     return (row * f).sum(-1)
 
@@ -173,7 +180,7 @@ def dirichlet_multinomial_log_prob(counts: Tensor, features: Tensor, alpha: floa
     hit = n > 0
     cells = torch.zeros_like(n)
     cells[hit] = torch.lgamma(a[hit] + n[hit]) - torch.lgamma(a[hit])
-    rows = (torch.lgamma(a.sum(-1).clamp_min(1e-300)) - torch.lgamma((a + n).sum(-1).clamp_min(1e-300))
+    rows = (torch.lgamma(a.sum(-1).clamp_min(_floor(counts.dtype))) - torch.lgamma((a + n).sum(-1).clamp_min(_floor(counts.dtype)))
             + cells.sum(-1))
     return (rows * f).sum(-1)
 
