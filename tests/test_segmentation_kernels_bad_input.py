@@ -222,3 +222,70 @@ def test_ffbs_and_backward_sample_require_a_generator():
         filtered, _ = forward_filter(le, init, P, n)
         with pytest.raises(InvalidArgumentError, match="generator"):
             backward_sample(filtered, P, n, gen)
+
+
+# ---------------------------------------------------------------------------- 5-7. IBP, synthetic data, runs
+def test_ibp_functions_reject_bad_arguments_and_keep_valid_values():
+    """Property: ibp_log_prior and sample_ibp raise typed errors naming the argument (integer features, whose
+    {0, 2} entries gave +inf; mass or concentration <= 0, which gave NaN or ZeroDivisionError; no generator; an
+    exceeded max_features), and a valid call still equals the direct formula for a 2 x 2 matrix."""
+    from lfd_torch.segmentation import ibp_log_prior, sample_ibp
+
+    g = torch.Generator().manual_seed(0)
+    F = torch.tensor([[True, False], [True, True]])
+    # direct: K+ = 2, one column per pattern; m = (2, 1), N = 2, gamma = 2, c = 1, H = c/c + c/(c+1) = 1.5
+    gam, c = 2.0, 1.0
+    direct = 2 * math.log(gam * c) - gam * 1.5 + sum(
+        math.lgamma(m) + math.lgamma(2 - m + c) - math.lgamma(2 + c) for m in (2, 1))
+    assert float(ibp_log_prior(F, gam, c)) == pytest.approx(direct, rel=1e-12)
+    with pytest.raises(ShapeMismatchError, match="features"):
+        ibp_log_prior(F.long() * 2, gam, c)
+    with pytest.raises(InvalidArgumentError, match="mass"):
+        ibp_log_prior(F, 0.0, c)
+    with pytest.raises(InvalidArgumentError, match="concentration"):
+        ibp_log_prior(F, gam, -1.0)
+    with pytest.raises(InvalidArgumentError, match="generator"):
+        sample_ibp(3, gam, c, None)
+    with pytest.raises(InvalidArgumentError, match="concentration"):
+        sample_ibp(3, gam, 0.0, g)
+    with pytest.raises(InvalidArgumentError, match="max_features"):
+        sample_ibp(50, 50.0, c, g, max_features=5)
+
+
+def test_multi_step_demos_checks_and_records_its_noise():
+    """Property: multi_step_demos records the noise it adds (SyntheticSteps.noise was always 0.0) and rejects
+    settings it silently altered or misreported (samples_per_step <= 0 became 4; timing_jitter >= 1 gives
+    non-positive leg factors; 1-D waypoints; no generator); the same seed gives the same data."""
+    from lfd_torch.segmentation import multi_step_demos
+
+    a = multi_step_demos(torch.Generator().manual_seed(3), noise=0.05)
+    b = multi_step_demos(torch.Generator().manual_seed(3), noise=0.05)
+    assert a.noise == 0.05 and torch.equal(a.demos.positions, b.demos.positions)
+    g = torch.Generator().manual_seed(0)
+    for kw, name in [({"samples_per_step": 0}, "samples_per_step"), ({"timing_jitter": 2.0}, "timing_jitter"),
+                     ({"noise": -0.1}, "noise"), ({"n_demos": 0}, "n_demos")]:
+        with pytest.raises(InvalidArgumentError, match=name):
+            multi_step_demos(g, **kw)
+    with pytest.raises(ShapeMismatchError, match="waypoints"):
+        multi_step_demos(g, waypoints=torch.zeros(3, dtype=torch.float64))
+    with pytest.raises(InvalidArgumentError, match="generator"):
+        multi_step_demos(None)
+
+
+def test_runs_rejects_non_sequences_and_matches_a_loop():
+    """Reference: a plain loop over the labels; empty, 0-d, 2-D and float labels raise ShapeMismatchError (a raw
+    IndexError before)."""
+    from lfd_torch.segmentation import runs
+
+    labels = torch.tensor([2, 2, 0, 0, 0, 1, 2, 2])
+    starts, ends, values = runs(labels)
+    loop, start = [], 0
+    for t in range(1, len(labels) + 1):
+        if t == len(labels) or labels[t] != labels[t - 1]:
+            loop.append((start, t, int(labels[start])))
+            start = t
+    assert list(zip(starts.tolist(), ends.tolist(), values.tolist())) == loop
+    for bad in (torch.tensor([], dtype=torch.long), torch.tensor(3), torch.zeros(2, 2, dtype=torch.long),
+                torch.tensor([0.0, 1.0])):
+        with pytest.raises(ShapeMismatchError, match="labels"):
+            runs(bad)

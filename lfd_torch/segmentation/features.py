@@ -19,6 +19,9 @@ import math
 import torch
 from torch import Tensor
 
+from lfd_torch.errors import InvalidArgumentError, ShapeMismatchError
+from lfd_torch.utils import check_float, check_generator, check_int
+
 __all__ = [
     "shared_log_odds",
     "unique_feature_rate",
@@ -60,7 +63,18 @@ def ibp_log_prior(features: Tensor, mass: float | Tensor, concentration: float) 
 
     Returns:
         (...) tensor (a scalar for one matrix).
+
+    Raises:
+        ShapeMismatchError: ``features`` is not a bool tensor of at least 2 dimensions.
+        InvalidArgumentError: ``concentration``, or a number ``mass``, not finite and > 0 (a tensor ``mass`` is the
+            sampler's own, not checked: no host synchronisation on its hot path).
     """
+    if not isinstance(features, Tensor) or features.dtype != torch.bool or features.ndim < 2:
+        got = f"{features.dtype} {tuple(features.shape)}" if isinstance(features, Tensor) else type(features).__name__
+        raise ShapeMismatchError(f"features must be a bool tensor (..., N, K), got {got}")
+    check_float(concentration, "concentration", low=0.0, low_open=True)
+    if not isinstance(mass, Tensor):
+        check_float(mass, "mass", low=0.0, low_open=True)
     f = features.to(torch.float64)
     n = f.shape[-2]
     m = f.sum(-2)  # (..., K)
@@ -87,7 +101,16 @@ def sample_ibp(
 
     Returns:
         (N, K) bool, columns in order of first appearance.
+
+    Raises:
+        InvalidArgumentError: ``generator`` not a torch.Generator; ``n_sequences`` not an integer >= 0; ``mass`` or
+            ``concentration`` not finite and > 0; ``max_features`` not an integer >= 1, or exceeded by the draw.
     """
+    check_generator(generator, where="sample_ibp")
+    check_int(n_sequences, "n_sequences", low=0)
+    check_float(mass, "mass", low=0.0, low_open=True)
+    check_float(concentration, "concentration", low=0.0, low_open=True)
+    check_int(max_features, "max_features", low=1)
     device = generator.device
     counts = torch.zeros(0, dtype=torch.float64, device=device)
     rows: list[Tensor] = []
@@ -99,7 +122,8 @@ def sample_ibp(
         row = torch.cat([own, torch.ones(n_new, dtype=torch.bool, device=device)])
         counts = torch.cat([counts + own.double(), torch.ones(n_new, dtype=torch.float64, device=device)])
         if counts.numel() > max_features:
-            raise RuntimeError(f"IBP draw exceeded {max_features} features")
+            raise InvalidArgumentError(f"the IBP draw exceeded max_features = {max_features} features (mass {mass}, "
+                                       f"concentration {concentration}): raise max_features or lower the mass")
         rows.append(row)
     k = counts.numel()
     out = torch.zeros(n_sequences, k, dtype=torch.bool, device=device)

@@ -560,11 +560,18 @@ def runs(labels: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Maximal runs of equal labels.
 
     Args:
-        labels: (T,) long.
+        labels: (T,) long, T >= 1.
 
     Returns:
         starts (R,), ends (R,) (exclusive) and values (R,).
+
+    Raises:
+        ShapeMismatchError: ``labels`` is not a non-empty 1-D integer tensor.
     """
+    if not isinstance(labels, Tensor) or labels.ndim != 1 or labels.numel() == 0 or labels.is_floating_point() \
+            or labels.is_complex():  # fmt: skip
+        shape = tuple(labels.shape) if isinstance(labels, Tensor) else type(labels).__name__
+        raise ShapeMismatchError(f"labels must be a non-empty 1-D integer tensor (T,), got {shape}")
     change = torch.nonzero(labels[1:] != labels[:-1]).reshape(-1) + 1
     starts = torch.cat([change.new_zeros(1), change])
     ends = torch.cat([change, change.new_tensor([labels.shape[0]])])

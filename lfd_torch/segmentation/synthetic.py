@@ -65,6 +65,7 @@ from torch import Tensor
 
 from lfd_torch.data import Demos
 from lfd_torch.errors import InvalidArgumentError
+from lfd_torch.utils import check_float, check_generator, check_int, check_tensor
 
 __all__ = [
     "SyntheticSteps",
@@ -189,10 +190,20 @@ def multi_step_demos(
     Returns:
         SyntheticSteps.
     """
+    check_generator(generator, where="multi_step_demos")
+    check_int(n_demos, "n_demos", low=1)
+    check_int(samples_per_step, "samples_per_step", low=1)
+    check_float(timing_jitter, "timing_jitter", low=0.0, high=1.0, high_open=True)  # leg factors must stay > 0
+    check_float(waypoint_jitter, "waypoint_jitter", low=0.0)
+    check_float(noise, "noise", low=0.0)
     if profile not in ("min_jerk", "constant"):
         raise InvalidArgumentError(f"profile must be 'min_jerk' or 'constant', got {profile!r}")
     if waypoints is None:
+        check_int(n_steps, "n_steps", low=1)
+        check_int(dim, "dim", low=1)
         waypoints = random_waypoints(n_steps, dim, generator, dtype=dtype)
+    else:
+        check_tensor(waypoints, "waypoints", ndim=2, min_rows=2, shape_hint="(M + 1, d), M >= 1 legs")
     device = generator.device  # the data are drawn on the generator's device
     waypoints = waypoints.to(dtype=dtype, device=device)
     M = waypoints.shape[0] - 1
@@ -218,7 +229,7 @@ def multi_step_demos(
         switches.append(torch.tensor(switch, dtype=torch.long, device=device))
     demos = Demos.from_sequences(sequences, dt=0.01, attractor=waypoints[-1], dtype=dtype)
     no_switch = torch.zeros(n_demos, 0, dtype=torch.long, device=device)
-    return SyntheticSteps(demos, waypoints, torch.stack(switches) if M > 1 else no_switch, profile)
+    return SyntheticSteps(demos, waypoints, torch.stack(switches) if M > 1 else no_switch, profile, noise=float(noise))
 
 
 # ============================================================================================ benchmark families
