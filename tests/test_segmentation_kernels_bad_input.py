@@ -289,3 +289,29 @@ def test_runs_rejects_non_sequences_and_matches_a_loop():
                 torch.tensor([0.0, 1.0])):
         with pytest.raises(ShapeMismatchError, match="labels"):
             runs(bad)
+
+
+def test_sampler_run_checks_its_arguments():
+    """Property: BetaProcessHMMSampler.run names the bad argument: a min_duration that is not an integer in
+    [1, shortest sequence] (0 and -2 gave raw errors, 2.7 was truncated, 1000 with T = 33 ran for over ten minutes),
+    a NaN speed_floor (raw LinAlgError), mixed dtypes (raw RuntimeError), no generator, NaN velocities."""
+    from lfd_torch.segmentation import BetaProcessHMMSampler
+
+    g = torch.Generator().manual_seed(0)
+    x = [torch.randn(33, 2, generator=g, dtype=torch.float64).cumsum(0)]
+    v = [torch.randn(33, 2, generator=g, dtype=torch.float64)]
+    sampler = BetaProcessHMMSampler(n_chains=1, n_iterations=2)
+    for bad in (0, -2, 2.7, 1000):
+        with pytest.raises(InvalidArgumentError, match="min_duration"):
+            sampler.run(x, v, g, min_duration=bad)
+    with pytest.raises(InvalidArgumentError, match="speed_floor"):
+        sampler.run(x, v, g, speed_floor=float("nan"))
+    with pytest.raises(ShapeMismatchError, match="dtype"):
+        sampler.run(x, [v[0].float()], g)
+    with pytest.raises(InvalidArgumentError, match="generator"):
+        sampler.run(x, v, 0)
+    nan_v = [v[0].clone()]
+    nan_v[0][3, 0] = float("nan")
+    with pytest.raises(NonFiniteError, match="velocities"):
+        sampler.run(x, nan_v, g)
+    assert sampler.run(x, v, torch.Generator().manual_seed(1), min_duration=2).states.shape == (1, 33)

@@ -238,6 +238,7 @@ import torch
 from torch import Tensor
 
 from lfd_torch.errors import InvalidArgumentError, NonFiniteError, ShapeMismatchError, TooFewSamplesError
+from lfd_torch.utils import check_float, check_generator, check_int
 from lfd_torch.gmm import (
     NIWPrior,
     gaussian_log_density,
@@ -586,10 +587,20 @@ class BetaProcessHMMSampler:
         Returns:
             SamplerResult of the best sample.
         """
+        check_generator(generator, where="BetaProcessHMMSampler.run")
+        for name, seqs in (("sequences", sequences), ("velocities", velocities)):
+            if not isinstance(seqs, (list, tuple)) or not all(isinstance(t, Tensor) for t in seqs):
+                raise ShapeMismatchError(f"{name} must be a list of (T_i, d) tensors")
+        dtypes = {t.dtype for t in (*sequences, *velocities)}
+        if len(dtypes) != 1:
+            raise ShapeMismatchError(f"sequences and velocities must share one dtype, got {sorted(map(str, dtypes))}")
         x, lengths = _pad(sequences)
-        v, lengths_v = _pad(velocities)
+        v, lengths_v = _pad(velocities, "velocities")
         if v.shape != x.shape or not torch.equal(lengths, lengths_v):
             raise ShapeMismatchError("velocities must have the shapes of the sequences")
+        # a state's run lasts at least D samples: every sequence must hold one (a larger D leaves no labelling)
+        check_int(min_duration, "min_duration", low=1, high=int(lengths.min()))
+        check_float(speed_floor, "speed_floor", low=0.0)
         c = None
         if dwell is not None:
             if len(dwell) != len(sequences) or any(ci.shape != (si.shape[0],) for ci, si in zip(dwell, sequences)):
@@ -648,17 +659,17 @@ def duration_phases(s: Tensor, min_duration: int) -> Tensor:
     return (t - first).clamp_max(int(min_duration) - 1)
 
 
-def _pad(sequences: list[Tensor]) -> tuple[Tensor, Tensor]:
+def _pad(sequences: list[Tensor], name: str = "sequences") -> tuple[Tensor, Tensor]:
     if len(sequences) == 0:
         raise TooFewSamplesError("no sequence to segment")
     d = sequences[0].shape[-1]
     for i, s in enumerate(sequences):
         if s.ndim != 2 or s.shape[-1] != d:
-            raise ShapeMismatchError(f"sequences must be (T_i, {d}), got {tuple(s.shape)}", i)
+            raise ShapeMismatchError(f"{name} must be (T_i, {d}), got {tuple(s.shape)}", i)
         if s.shape[0] < 2:
             raise TooFewSamplesError(f"has {s.shape[0]} samples, at least 2 are needed", i)
         if not torch.isfinite(s).all():
-            raise NonFiniteError("contains NaN or Inf", i)
+            raise NonFiniteError(f"{name} contain NaN or Inf", i)
     T = max(s.shape[0] for s in sequences)
     x = torch.stack([torch.cat([s, s[-1:].expand(T - s.shape[0], d)]) for s in sequences])
     lengths = torch.tensor([s.shape[0] for s in sequences], dtype=torch.long, device=x.device)
