@@ -293,7 +293,8 @@ def test_geweke_with_hyperparameter_resampling():
     Gamma(1, 0.01) priors on alpha and kappa mix slowly, so the burn-in is long: with 40 of 200 sweeps the start
     had not been forgotten (K+ and features-per-sequence histograms off by z = 5-8 on data seeds 6 and 8, the
     check that was an open failure before); with 150 of 400 the largest |z| is 4.0, 2.5, 1.7, 2.4 on data seeds
-    5-8. Power, checked by mutation: gamma drawn 1.5 times too large gives z = 15-24 on K+. alpha and kappa are checked
+    5-8, but 6.9 (K+) and 5.3 (features per sequence) on data seeds 9 and 10 (measured at 59e8570, one-off; open:
+    slow mixing or a bias, not settled). Power, checked by mutation: gamma drawn 1.5 times too large gives z = 15-24 on K+. alpha and kappa are checked
     by their marginals (bounded: the shares below the prior's quartiles; |z| <= 1.8 on data seeds 5-9): a Dirichlet
     log density without its log Gamma(sum a) normaliser, which the moment of pi_jj let through, gives z = 37-110."""
     got = _geweke_chain(n_iter=400, burn=150, n_chains=16, seed=7, hyper=True)
