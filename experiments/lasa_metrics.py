@@ -30,6 +30,7 @@ from lfd_torch.errors import UnknownNameError
 from lfd_torch.metrics import dtw_distance, swept_area, velocity_error
 from lfd_torch.preprocess import Preprocess
 from lfd_torch.store import prepare_job, staged_results, write_table
+from lfd_torch.store.job import RESULTS_NAME
 from lfd_torch.viz import violin
 from lfd_torch.store.config_checks import get, name_list
 
@@ -107,7 +108,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     log.info("%d shapes regularized and measured in %.2f s", len(shapes), time.perf_counter() - t0)
 
     out_dir, manifest = job.out_dir, job.manifest
-    written = [write_table(table, out_dir / "results.parquet", manifest=manifest)]
+    written = [write_table(table, out_dir / RESULTS_NAME, manifest=manifest)]
     written.append(out_dir / f"{cfg.plot_metric}.png")
     violin(table, cfg.plot_metric, by="shape", path=written[-1])
     if cfg.publish:

@@ -43,6 +43,7 @@ from lfd_torch.metrics import cosine_dissimilarity, dtw_distance, velocity_error
 from lfd_torch.preprocess import subsample
 from lfd_torch.rollout import IntegrationMethod, rollout
 from lfd_torch.store import prepare_job, run_manifest, staged_results, write_table
+from lfd_torch.store.job import RESULTS_NAME
 from lfd_torch.utils import check_choice, check_float, check_int, derive_seed
 from lfd_torch.store.config_checks import get, is_config_error, positive_float, positive_int
 
@@ -148,7 +149,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                 })  # fmt: skip
     table = pd.DataFrame(rows)
     manifest = run_manifest(cfg, cfg.seed)
-    written.append(write_table(table, out_dir / "results.parquet", manifest=manifest))
+    written.append(write_table(table, out_dir / RESULTS_NAME, manifest=manifest))
     if cfg.publish:
         written.append(write_table(table, Path(cfg.paths.tables) / f"{cfg.experiment}_{shape}.parquet", manifest=manifest))
     ok = table[table.status == "ok"]

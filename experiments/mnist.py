@@ -52,6 +52,7 @@ from lfd_torch.metrics import dtw_distance, swept_area  # noqa: E402
 from lfd_torch.rollout import rollout  # noqa: E402
 from lfd_torch.skills import SkillEngine, SkillLibrary  # noqa: E402
 from lfd_torch.store import atomic_write, prepare_job, staged_results, write_table  # noqa: E402
+from lfd_torch.store.job import RESULTS_NAME  # noqa: E402
 from lfd_torch.utils import check_int, derive_seed  # noqa: E402
 from lfd_torch.viz.stored import load_demos, save_demos  # noqa: E402
 from lfd_torch.store.config_checks import (  # noqa: E402
@@ -354,7 +355,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         rows.extend(part)
         tasks[int(d)] = task
     table = pd.DataFrame(rows)
-    written: list[Path] = [write_table(table, out_dir / "results.parquet", manifest=manifest)]
+    written: list[Path] = [write_table(table, out_dir / RESULTS_NAME, manifest=manifest)]
     summ = summary(table)
     md = summ.to_markdown(index=False, floatfmt=".3g")
     written.append(atomic_write(out_dir / "summary.md", lambda p: p.write_text(md + "\n")))

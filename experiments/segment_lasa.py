@@ -39,6 +39,7 @@ from lfd_torch.data import Demos, load_lasa
 from lfd_torch.segmentation.plot import plot_segmentation
 from lfd_torch.segmentation.synthetic import multi_step_demos
 from lfd_torch.store import atomic_write, prepare_job, staged_results, write_table
+from lfd_torch.store.job import RESULTS_NAME
 from lfd_torch.utils import derive_seed
 from lfd_torch.viz.stored import save_demos
 
@@ -114,7 +115,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         if cfg.publish:
             written += store(name, seg, demos, Path(cfg.paths.libraries), cfg.experiment)
     table = pd.DataFrame(rows)
-    written.append(write_table(table, out_dir / "results.parquet", manifest=manifest))
+    written.append(write_table(table, out_dir / RESULTS_NAME, manifest=manifest))
     if cfg.publish:
         tables = Path(cfg.paths.tables)
         written.append(write_table(table, tables / f"{cfg.experiment}.parquet", manifest=manifest))
